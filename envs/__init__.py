@@ -1,7 +1,8 @@
 """Environments of the paper, registered with gymnasium on import.
 
-``import envs`` then ``gymnasium.make("SimpleShapes-v0")`` or
-``gymnasium.make_vec("SimpleShapes-v0", num_envs=N, vectorization_mode="vector_entry_point")``.
+``import envs`` then ``gymnasium.make("SimpleShapes-v0")``,
+``gymnasium.make_vec("SimpleShapes-v0", num_envs=N, vectorization_mode="vector_entry_point")`` or
+``gymnasium.make("RoboDesk-v0", task="push_green")``. Importing ``envs`` does not import mujoco.
 """
 
 import gymnasium
@@ -12,4 +13,9 @@ gymnasium.register(
     vector_entry_point="envs.simple_shapes:SimpleShapesVectorEnv",
 )
 
-__all__ = ["simple_shapes"]
+gymnasium.register(
+    id="RoboDesk-v0",
+    entry_point="envs.robodesk:RoboDeskEnv",
+)
+
+__all__ = ["robodesk", "simple_shapes"]

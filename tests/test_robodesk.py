@@ -1,0 +1,233 @@
+"""RoboDesk port: tasks, rewards, inverse kinematics, observations, image pipeline, errors."""
+
+import importlib.util
+from pathlib import Path
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import envs  # noqa: F401  (registers the environments)
+from envs import robodesk
+from envs.robodesk import CORE_TASKS, EXTRA_TASKS, TASKS, ImageResizer, RoboDeskEnv
+
+DATA = Path(__file__).parent / "data"
+
+
+@pytest.fixture(scope="module")
+def env():
+    """One attributes-only environment shared by the state-setting tests (reset in each)."""
+    e = RoboDeskEnv(render_images=False)
+    yield e
+    e.close()
+
+
+def with_objects(env, task, seed=0, **moves):
+    """Reset ``env`` on ``task``, then place objects/joints: ``name=value`` sets a slide joint's
+    position or a free body's (x, y, z) (``None`` entries keep the current coordinate)."""
+    env.task = task
+    env.reset(seed=seed)
+    qpos, qvel = env.data.qpos.copy(), np.zeros(env.model.nv)
+    for name, value in moves.items():
+        j = env.model.joint(name)
+        if j.type[0] == mujoco.mjtJoint.mjJNT_FREE:
+            for k, v in enumerate(value):
+                if v is not None:
+                    qpos[j.qposadr[0] + k] = v
+        else:
+            qpos[j.qposadr[0]] = value
+    env.set_state(qpos, qvel)
+    return env.task_reward("success")
+
+
+def test_task_list_matches_the_original():
+    assert len(CORE_TASKS) == 9 and len(EXTRA_TASKS) == 9 and len(set(TASKS)) == 18
+
+
+def test_unknown_task_and_bad_arguments_raise_clear_errors():
+    with pytest.raises(ValueError, match="valid tasks: open_slide, open_drawer, push_green"):
+        RoboDeskEnv(task="open_door")
+    with pytest.raises(ValueError, match="reward mode"):
+        RoboDeskEnv(reward="shaped")
+    with pytest.raises(ValueError, match="render_quality"):
+        RoboDeskEnv(render_quality="ultra")
+
+
+def test_missing_scene_names_the_install_command(monkeypatch):
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name: None)
+    with pytest.raises(FileNotFoundError, match=r"pip install --no-deps robodesk==1\.0\.0"):
+        robodesk.scene_path()
+
+
+def test_wrong_actions_and_states_raise(env):
+    env.reset(seed=0)
+    for bad in ([0.0] * 4, [0, 0, np.nan, 0, 0], [0, 0, 2.0, 0, 0], "left"):
+        with pytest.raises(ValueError, match="RoboDesk action"):
+            env.step(bad)
+    with pytest.raises(ValueError, match="qpos of shape"):
+        env.set_state(np.zeros(3), np.zeros(env.model.nv))
+    with pytest.raises(RuntimeError, match="reset"):
+        RoboDeskEnv(render_images=False).step(np.zeros(5))
+
+
+def test_check_env_with_and_without_images():
+    check_env(RoboDeskEnv(render_images=False, episode_length=40), skip_render_check=True)
+    check_env(
+        gym.make("RoboDesk-v0", render_quality="fast", episode_length=40).unwrapped, skip_render_check=True
+    )
+
+
+@pytest.mark.parametrize(
+    "task, success_moves, failure_moves",
+    [
+        ("open_slide", {"slide_joint": 0.56}, {"slide_joint": 0.3}),
+        ("open_drawer", {"drawer_joint": -0.25}, {"drawer_joint": -0.05}),
+        ("push_green", {"green_light": -0.005}, {"green_light": 0.0}),
+        ("push_blue", {"blue_light": -0.005}, {"green_light": -0.005}),
+        ("push_red", {"red_light": -0.005}, {"red_light": -0.004}),
+        ("lift_upright_block", {"upright_block": (None, None, 0.95)}, {"upright_block": (None, None, 0.85)}),
+        ("lift_ball", {"ball": (None, None, 0.95)}, {"ball": (None, None, 0.80)}),
+        ("lift_flat_block", {"flat_block": (None, None, 0.95)}, {"flat_block": (None, None, 0.77)}),
+        ("flat_block_in_bin", {"flat_block": (0.4, 0.5, 0.2)}, {"flat_block": (0.4, 0.7, 0.2)}),
+        ("upright_block_in_bin", {"upright_block": (0.3, 0.4, 0.1)}, {"upright_block": (0.4, 0.5, 0.5)}),
+        ("ball_in_bin", {"ball": (0.5, 0.6, 0.3)}, {"ball": (0.6, 0.5, 0.3)}),
+        ("flat_block_in_shelf", {"flat_block": (0.4, 1.1, 0.9)}, {"flat_block": (0.1, 1.1, 0.9)}),
+        ("upright_block_in_shelf", {"upright_block": (0.3, 1.05, 0.9)}, {"upright_block": (0.3, 0.95, 0.9)}),
+        ("ball_in_shelf", {"ball": (0.25, 1.2, 0.9)}, {"ball": (0.15, 1.2, 0.9)}),
+        ("upright_block_off_table", {"upright_block": (0.9, 0.5, 0.1)}, {"upright_block": (0.3, 0.7, 0.65)}),
+        ("flat_block_off_table", {"flat_block": (0.9, 0.5, 0.1)}, {}),
+        ("ball_off_table", {"ball": (-0.9, 0.5, 0.5)}, {"ball": (-0.3, 0.7, 0.61)}),
+    ],
+)
+def test_success_criterion_on_hand_set_states(env, task, success_moves, failure_moves):
+    assert with_objects(env, task, **success_moves) == 1.0
+    assert with_objects(env, task, **failure_moves) == 0.0
+
+
+def test_stack_success(env):
+    env.task = "stack"
+    env.reset(seed=3)
+    flat = env.data.xpos[env.model.body("flat_block").id].copy()
+    assert with_objects(env, "stack", seed=3) == 0.0
+    # Put the upright block's frame 0.0378 m above the flat block's.
+    assert with_objects(env, "stack", seed=3, upright_block=flat + np.array([0.0, 0.0, 0.0378])) == 1.0
+
+
+def test_success_is_reported_in_info_every_step():
+    e = RoboDeskEnv(task="open_slide", render_images=False, action_repeat=1, reward="sparse")
+    e.reset(seed=0)
+    qpos = e.data.qpos.copy()
+    qpos[e.model.joint("slide_joint").qposadr[0]] = 0.58
+    _, info = e.reset(options={"qpos": qpos, "qvel": np.zeros(e.model.nv)})
+    assert info["success"]
+    _, r, term, trunc, info = e.step(np.zeros(5))
+    assert info["success"] and r == 1.0 and not term and not trunc
+
+
+def test_reward_modes_sum_over_repeats_and_success_pays_once():
+    sparse = RoboDeskEnv(task="open_slide", reward="sparse", render_images=False, action_repeat=4)
+    once = RoboDeskEnv(task="open_slide", reward="success", render_images=False, action_repeat=4)
+    for e in (sparse, once):
+        e.reset(seed=0)
+        qpos = e.data.qpos.copy()
+        qpos[e.model.joint("slide_joint").qposadr[0]] = 0.58
+        e.reset(options={"qpos": qpos, "qvel": np.zeros(e.model.nv)})
+    assert [sparse.step(np.zeros(5))[1] for _ in range(2)] == [4.0, 4.0]
+    assert [once.step(np.zeros(5))[1] for _ in range(2)] == [1.0, 0.0]
+
+
+def test_reference_position_defect_and_the_corrected_rewards():
+    """Lifting the ball 0.2 m: the original's live reference follows it, so the lift term stays 0."""
+    rewards = {}
+    for frozen in (False, True):
+        e = RoboDeskEnv(task="lift_ball", render_images=False, frozen_reference=frozen)
+        e.reset(seed=0)
+        qpos = e.data.qpos.copy()
+        qpos[e.model.joint("ball").qposadr[0] + 2] += 0.2
+        e.set_state(qpos, np.zeros(e.model.nv))
+        ball = e.data.xpos[e.model.body("ball").id]
+        dist = np.clip(1 - np.linalg.norm(e.data.site_xpos[e._ee_site] - ball), 0, 1)
+        rewards[frozen] = (e.task_reward("dense"), 0.15 * dist)
+    live, frozen = rewards[False], rewards[True]
+    assert live[0] == pytest.approx(live[1])  # only the distance term
+    assert frozen[0] == pytest.approx(min(1.0, 0.85 + frozen[1]))  # lift term saturated at 1
+
+
+def test_inverse_kinematics_reaches_the_commanded_delta(env):
+    env.reset(seed=1)
+    ee = env.data.site_xpos[env._ee_site].copy()
+    check = mujoco.MjData(env.model)
+    for delta in ([0.01, 0, 0], [0, -0.01, 0], [0, 0, 0.01], [0.007, 0.007, -0.007]):
+        env._scratch.qpos[:] = env.data.qpos
+        joints = env.inverse_kinematics(ee + np.array(delta))
+        np.testing.assert_array_equal(joints[6:], env.data.qpos[6:9])  # only joints 1-6 move
+        check.qpos[:] = env.data.qpos
+        check.qpos[:9] = joints
+        mujoco.mj_kinematics(env.model, check)
+        np.testing.assert_allclose(check.site_xpos[env._ee_site], ee + delta, atol=1e-6)
+
+
+def test_reset_is_reproducible_and_replays_from_a_state():
+    a, b = RoboDeskEnv(render_images=False), RoboDeskEnv(render_images=False)
+    oa, _ = a.reset(seed=7)
+    ob, _ = b.reset(seed=7)
+    np.testing.assert_array_equal(oa["attr"], ob["attr"])
+    oc, _ = b.reset(seed=8)
+    assert not np.allclose(oc["attr"], oa["attr"])
+    # Replay: start b from a's full state, apply the same actions, get the same trajectory.
+    a.reset(seed=9)
+    b.reset(options={"qpos": a.data.qpos.copy(), "qvel": a.data.qvel.copy()})
+    actions = np.random.default_rng(0).uniform(-1, 1, (10, 5))
+    for act in actions:
+        ra, rb = a.step(act), b.step(act)
+        np.testing.assert_array_equal(ra[0]["attr"], rb[0]["attr"])
+        assert ra[1] == rb[1]
+
+
+def test_observation_has_76_finite_attributes_and_truncates_without_terminating():
+    e = RoboDeskEnv(render_images=False, action_repeat=4, episode_length=16)
+    obs, _ = e.reset(seed=0)
+    assert obs["attr"].shape == (76,) and np.all(np.isfinite(obs["attr"]))
+    n = e.model.nq - 9
+    np.testing.assert_array_equal(obs["attr"][21 : 21 + n], e.data.qpos[9:].astype(np.float32))
+    flags = [e.step(np.zeros(5))[2:4] for _ in range(4)]
+    assert flags == [(False, False)] * 3 + [(False, True)]
+
+
+def test_image_is_rendered_like_the_original_and_follows_the_arm():
+    e = RoboDeskEnv(task="push_green", render_quality="fast", action_repeat=4)
+    obs, _ = e.reset(seed=0)
+    img = obs["image"]
+    assert img.shape == (64, 64, 3) and img.dtype == np.uint8 and img.std() > 20
+    for _ in range(10):
+        obs, *_ = e.step(np.array([0.0, -1.0, 1.0, 0.0, 1.0]))
+    assert np.abs(obs["image"].astype(int) - img).mean() > 1.0
+    e.close()
+
+
+def test_faithful_render_is_non_blank():
+    e = RoboDeskEnv(render_quality="faithful")
+    obs, _ = e.reset(seed=0)
+    assert obs["image"].std() > 20
+    e.close()
+
+
+def test_crop_and_resize_match_pillow_exactly():
+    """tests/data/make_pillow_reference.py made the reference with Pillow's crop + LANCZOS resize."""
+    ref = np.load(DATA / "pillow_lanczos_reference.npz")
+    np.testing.assert_array_equal(ImageResizer(64)(ref["render"]), ref["image"])
+
+
+def test_async_vector_env_runs_the_port():
+    # "spawn": a child forked from a process that already rendered inherits a broken GL state.
+    vec = gym.vector.AsyncVectorEnv(
+        [lambda: RoboDeskEnv(render_quality="fast", episode_length=8, action_repeat=4) for _ in range(2)],
+        context="spawn",
+    )
+    obs, _ = vec.reset(seed=[0, 1])
+    assert obs["image"].shape == (2, 64, 64, 3) and obs["attr"].shape == (2, 76)
+    obs, rew, term, trunc, info = vec.step(np.zeros((2, 5), dtype=np.float32))
+    assert rew.shape == (2,) and not term.any() and np.all(np.isfinite(obs["attr"]))
+    vec.close()
