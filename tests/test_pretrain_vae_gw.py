@@ -1,0 +1,240 @@
+"""pretrain_vae_gw.py: stages through the CLI, GW losses by hand, learning, reloading, errors."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import torch.nn as nn
+from torch.utils.tensorboard import SummaryWriter
+
+import pretrain_vae_gw as P
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = [
+    "--n-samples", "600", "--shard-size", "300", "--vae-steps", "12", "--vae-batch-size", "16",
+    "--vae-width", "32", "--gw-steps", "20", "--gw-batch-size", "32", "--log-every", "5",
+    "--save-every", "5", "--eval-size", "60",
+]  # fmt: skip
+
+
+def run_cli(tmp_path, *extra):
+    cmd = [sys.executable, str(ROOT / "pretrain_vae_gw.py"), "--data-dir", str(tmp_path / "data")]
+    cmd += ["--checkpoint-dir", str(tmp_path / "ck"), *TINY, *extra]
+    out = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stdout + out.stderr
+    return out.stdout
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """Tiny Simple Shapes run of all three stages, then the CLIP-like preset on the same VAEs."""
+    tmp = tmp_path_factory.mktemp("ss")
+    log = run_cli(tmp, "--env", "simple_shapes")
+    log_clip = run_cli(tmp, "--env", "simple_shapes", "--stages", "gw", "--loss-preset", "clip")
+    return tmp, log, log_clip
+
+
+def test_all_stages_run_through_the_cli(trained):
+    tmp, log, log_clip = trained
+    assert len(P.shard_paths(tmp / "data" / "simple_shapes")) == 2
+    for name, kind in (("vae", "vae"), ("gw", "gw"), ("clip", "gw")):
+        ck = torch.load(tmp / "ck" / "simple_shapes" / f"{name}.pt", weights_only=False)
+        assert ck["kind"] == kind and ck["env"] == "simple_shapes"
+    assert "held-out evaluation" in log and "tr_image_to_class_accuracy" in log
+    assert "[clip]" in log_clip
+    assert list((tmp / "runs").iterdir())  # TensorBoard logs under runs/
+    # Collecting again appends nothing once enough samples exist; asking for more appends a shard.
+    assert "already holds 600" in run_cli(tmp, "--env", "simple_shapes", "--stages", "collect")
+    run_cli(tmp, "--env", "simple_shapes", "--stages", "collect", "--n-samples", "700")
+    images, attrs = P.load_data(tmp / "data" / "simple_shapes", "simple_shapes")
+    assert images.shape == (700, 32, 32, 3) and attrs.shape == (700, 11)
+
+
+def test_robodesk_stages_on_tiny_data(tmp_path):
+    small = ["--n-samples", "40", "--shard-size", "20", "--render-quality", "fast", "--eval-size", "8"]
+    log = run_cli(tmp_path, "--env", "robodesk", "--vae-batch-size", "8", "--gw-batch-size", "8", *small)
+    assert "RANDOM-policy RoboDesk data only" in log
+    ck = torch.load(tmp_path / "ck" / "robodesk" / "gw.pt", weights_only=False)
+    assert ck["config"]["z"] == 76 and ck["gw"]["e.v.0.weight"].shape == (512, 40)
+
+
+def test_checkpoints_reload_to_identical_outputs(trained):
+    tmp = trained[0]
+    ck_dir = tmp / "ck" / "simple_shapes"
+    vae_v, vae_attr, vae_ck = P.load_vaes(ck_dir / "vae.pt", "simple_shapes")
+    again_v, again_attr, _ = P.load_vaes(ck_dir / "vae.pt", "simple_shapes")
+    images, attrs = P.load_data(tmp / "data" / "simple_shapes", "simple_shapes")
+    x = P.images_to_tensor(images[:16], "cpu")
+    torch.testing.assert_close(vae_v.encode(x)[0], again_v.encode(x)[0], rtol=0, atol=0)
+    gw_ck = P.load_checkpoint(ck_dir / "gw.pt", "gw", "simple_shapes", "make it")
+    spec = P.ENV_SPECS["simple_shapes"]
+    gw = P.GlobalWorkspace(spec["latent"], spec["z"], spec["gw_hidden"])
+    gw.load_state_dict(gw_ck["gw"])
+    u_v, u_a = vae_v.encode(x)[0], vae_attr.encode(torch.as_tensor(attrs[:16]))[0]
+    z = gw.fuse(u_v, u_a, 0.5, 0.5)
+    gw2 = P.GlobalWorkspace(spec["latent"], spec["z"], spec["gw_hidden"])
+    gw2.load_state_dict(torch.load(ck_dir / "gw.pt", weights_only=False)["gw"])
+    torch.testing.assert_close(gw2.fuse(u_v, u_a, 0.5, 0.5), z, rtol=0, atol=0)
+
+
+def test_mismatched_or_missing_checkpoints_and_bad_data_are_explained(trained, tmp_path):
+    ck = trained[0] / "ck" / "simple_shapes" / "vae.pt"
+    with pytest.raises(ValueError, match="made for env 'simple_shapes'.*'robodesk'.*--env robodesk"):
+        P.load_vaes(ck, "robodesk")
+    with pytest.raises(ValueError, match="'vae' checkpoint, expected 'gw'"):
+        P.load_checkpoint(ck, "gw", "simple_shapes", "cmd")
+    with pytest.raises(FileNotFoundError, match="--stages collect vae"):
+        P.load_vaes(tmp_path / "nothing.pt", "simple_shapes")
+    with pytest.raises(FileNotFoundError, match="--stages collect"):
+        P.load_data(tmp_path, "simple_shapes")
+    P.write_shard(tmp_path, np.zeros((4, 64, 64, 3), np.uint8), np.zeros((4, 11)), "random")
+    with pytest.raises(ValueError, match="do not match env simple_shapes"):
+        P.load_data(tmp_path, "simple_shapes")
+
+
+class Scale(nn.Module):
+    def __init__(self, s):
+        super().__init__()
+        self.s = s
+
+    def forward(self, x):
+        return self.s * x
+
+
+def hand_gw():
+    """A GW whose encoders and decoders are fixed scalings, so every loss term is computable by hand."""
+    gw = P.GlobalWorkspace(2, 2, 4)
+    gw.e = nn.ModuleDict({"v": Scale(1.0), "attr": Scale(2.0)})
+    gw.d = nn.ModuleDict({"v": Scale(1.0), "attr": Scale(0.5)})
+    return gw
+
+
+def test_gw_losses_match_hand_computed_values():
+    u = {"v": torch.tensor([[0.5, -1.0]]), "attr": torch.tensor([[0.2, 0.4]])}
+    t = np.tanh
+    uv, ua = np.array([0.5, -1.0]), np.array([0.2, 0.4])
+    dcy = (np.mean((t(uv) - uv) ** 2) + np.mean((0.5 * t(2 * ua) - ua) ** 2)) / 2
+    tr = (np.mean((0.5 * t(uv) - ua) ** 2) + np.mean((t(2 * ua) - uv) ** 2)) / 2
+    cy = (np.mean((t(2 * 0.5 * t(uv)) - uv) ** 2) + np.mean((0.5 * t(t(2 * ua)) - ua) ** 2)) / 2
+    for alpha in (1.0, 0.0, 0.5):
+        fused = t(alpha * uv + (1 - alpha) * 2 * ua)
+        fusion = (np.mean((fused - uv) ** 2) + np.mean((0.5 * fused - ua) ** 2)) / 2
+        terms = P.gw_losses(hand_gw(), u, torch.tensor([[alpha]]), 0.07)
+        assert terms["dcy"].item() == pytest.approx(dcy)
+        assert terms["tr"].item() == pytest.approx(tr)
+        assert terms["cy"].item() == pytest.approx(cy)
+        assert terms["fusion"].item() == pytest.approx(fusion)
+    # alpha_v = 1 fusion is the vision demi-cycle and translation; alpha_v = 0 the attribute ones.
+    gw = hand_gw()
+    z1 = gw.fuse(u["v"], u["attr"], 1.0, 0.0)
+    torch.testing.assert_close(z1, torch.tanh(u["v"]))
+    # Contrastive: two samples, logits = cos similarity / T, symmetric cross-entropy.
+    u2 = {"v": torch.tensor([[1.0, 0.0], [0.0, 1.0]]), "attr": torch.tensor([[1.0, 0.0], [1.0, 1.0]])}
+    c = 1 / np.sqrt(2)
+    logits = np.array([[1.0, c], [0.0, c]]) / 0.07
+    rows = -np.mean([logits[i, i] - np.log(np.exp(logits[i]).sum()) for i in range(2)])
+    cols = -np.mean([logits[i, i] - np.log(np.exp(logits[:, i]).sum()) for i in range(2)])
+    cont = P.gw_losses(hand_gw(), u2, torch.full((2, 1), 0.5), 0.07)["cont"].item()
+    assert cont == pytest.approx((rows + cols) / 2, rel=1e-5)
+
+
+def test_clip_preset_has_zero_broadcast_gradients():
+    torch.manual_seed(0)
+    gw = P.GlobalWorkspace(10, 10, 64)
+    u = {"v": torch.randn(32, 10), "attr": torch.randn(32, 10)}
+    terms = P.gw_losses(gw, u, torch.rand(32, 1), 0.07)
+    betas = P.PRESETS["clip"]
+    sum(betas[k] * terms[k] for k in terms).backward()
+    for p in gw.d.parameters():
+        assert p.grad is None or torch.count_nonzero(p.grad) == 0
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in gw.e.parameters())
+
+
+def test_losses_fall_on_a_fixed_batch():
+    torch.manual_seed(0)
+    from envs.simple_shapes import sample_dataset
+
+    d = sample_dataset(32, seed=0)
+    vae_v, vae_attr = P.make_vaes("simple_shapes", 32)
+    x, a = P.images_to_tensor(d["image"], "cpu"), torch.as_tensor(d["attr"])
+    opt = torch.optim.Adam([*vae_v.parameters(), *vae_attr.parameters()], lr=2e-3)
+    first = None
+    for _ in range(40):
+        loss = vae_v.loss(x, 0.1)[0] + vae_attr.loss(a, 0.05)[0]
+        first = first if first is not None else loss.item()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert loss.item() < 0.5 * first
+    gw = P.GlobalWorkspace(10, 10, 64)
+    u = {"v": torch.randn(64, 10), "attr": torch.randn(64, 10)}
+    opt = torch.optim.Adam(gw.parameters(), lr=3e-3)
+    alpha = torch.rand(64, 1)
+    losses = []
+    for _ in range(150):
+        terms = P.gw_losses(gw, u, alpha, 0.07)
+        loss = sum(P.PRESETS["gw"][k] * terms[k] for k in terms)
+        losses.append(loss.item())
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert losses[-1] < 0.6 * losses[0]
+
+
+def test_vae_stage_resumes_after_an_interruption(tmp_path, monkeypatch, capsys):
+    from envs.simple_shapes import sample_dataset
+
+    d = sample_dataset(200, seed=0)
+    P.write_shard(tmp_path / "data" / "simple_shapes", d["image"], d["attr"], "random")
+    args = P.Args(
+        data_dir=str(tmp_path / "data"), checkpoint_dir=str(tmp_path / "ck"), vae_steps=12,
+        vae_batch_size=8, vae_width=32, save_every=5, log_every=100, eval_size=20,
+    ).resolve()  # fmt: skip
+    real_save = P.atomic_save
+
+    def interrupted(obj, path):  # the run dies when it writes its final checkpoint
+        if "kind" in obj:
+            raise KeyboardInterrupt
+        real_save(obj, path)
+
+    monkeypatch.setattr(P, "atomic_save", interrupted)
+    writer = SummaryWriter(str(tmp_path / "runs"))
+    with pytest.raises(KeyboardInterrupt):
+        P.train_vae(args, writer)
+    partial = tmp_path / "ck" / "simple_shapes" / "vae.partial.pt"
+    assert torch.load(partial, weights_only=False)["step"] == 10
+    monkeypatch.setattr(P, "atomic_save", real_save)
+    P.train_vae(args, writer)
+    assert "resuming from step 10" in capsys.readouterr().out
+    assert not partial.exists() and (tmp_path / "ck" / "simple_shapes" / "vae.pt").is_file()
+
+
+def test_defaults_follow_the_tables_and_the_cpu_preset_is_small():
+    ss, rd = P.Args(env="simple_shapes").resolve(), P.Args(env="robodesk").resolve()
+    assert (ss.n_samples, ss.vae_batch_size, ss.vae_steps, ss.vae_width) == (500_000, 2056, 500_000, 1024)
+    assert (ss.vae_lr_v, ss.vae_lr_start_end, ss.gw_lr, ss.gw_lr_start_end, ss.gw_weight_decay) == (
+        5e-3, 5e-3, 5e-3, 5e-4, 1e-5,
+    )  # fmt: skip
+    assert (rd.vae_lr_v, rd.vae_lr_attr, rd.gw_lr, rd.gw_lr_start_end, rd.gw_weight_decay) == (
+        3e-4, 5e-4, 3e-4, 1e-4, 1e-6,
+    )  # fmt: skip
+    cpu = P.Args(env="simple_shapes", cpu_preset=True).resolve()
+    assert (cpu.n_samples, cpu.vae_width, cpu.vae_steps, cpu.vae_batch_size, cpu.gw_steps) == (
+        60_000, 128, 2_400, 128, 6_000,
+    )  # fmt: skip
+    # One-cycle schedule: starts and ends at the start/end rate, peaks at the max rate.
+    opt = torch.optim.AdamW([torch.zeros(1, requires_grad=True)])
+    sched = P.one_cycle(opt, 5e-3, 5e-4, 100)
+    lrs = []
+    for _ in range(100):
+        lrs.append(sched.get_last_lr()[0])
+        opt.step()
+        sched.step()
+    assert (
+        lrs[0] == pytest.approx(5e-4)
+        and max(lrs) == pytest.approx(5e-3)
+        and lrs[-1] == pytest.approx(5e-4, rel=0.05)
+    )
