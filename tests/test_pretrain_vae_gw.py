@@ -225,6 +225,7 @@ def test_defaults_follow_the_tables_and_the_cpu_preset_is_small():
     assert (cpu.n_samples, cpu.vae_width, cpu.vae_steps, cpu.vae_batch_size, cpu.gw_steps) == (
         60_000, 128, 2_400, 128, 6_000,
     )  # fmt: skip
+    assert (cpu.beta_attr, cpu.attr_updates_per_step) == (0.005, 4)
     # One-cycle schedule: starts and ends at the start/end rate, peaks at the max rate.
     opt = torch.optim.AdamW([torch.zeros(1, requires_grad=True)])
     sched = P.one_cycle(opt, 5e-3, 5e-4, 100)
