@@ -524,7 +524,8 @@ class SimpleShapesVectorEnv(gym.vector.VectorEnv):
     Environment i with seed s behaves exactly like ``SimpleShapesEnv`` reset with seed s + i (a list of
     seeds may be given instead). Finished environments reset in the same step (``autoreset_mode`` SAME_STEP):
     the returned observation starts the new episode and ``info["final_obs"]`` holds the last observation
-    of every environment, valid where ``info["_final_obs"]`` is True.
+    of every environment, valid where ``info["_final_obs"]`` is True. The other ``info`` entries
+    (distance, angle, is_success) describe the state the step reached, before any reset.
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10, "autoreset_mode": AutoresetMode.SAME_STEP}
@@ -571,9 +572,9 @@ class SimpleShapesVectorEnv(gym.vector.VectorEnv):
             info["_final_obs"] = terminated | truncated
             self._core.reset(done, self.np_randoms, None)
             obs = {k: v.copy() for k, v in obs.items()}
-            fresh = self._core.obs()
+            fresh = self._core.obs(done)  # only the environments that restarted
             for k in obs:
-                obs[k][done] = fresh[k][done]
+                obs[k][done] = fresh[k]
         self._obs = obs
         return obs, reward, terminated, truncated, info
 
