@@ -223,7 +223,7 @@ def test_defaults_follow_the_tables_and_the_cpu_preset_is_small():
     )  # fmt: skip
     cpu = P.Args(env="simple_shapes", cpu_preset=True).resolve()
     assert (cpu.n_samples, cpu.vae_width, cpu.vae_steps, cpu.vae_batch_size, cpu.gw_steps) == (
-        60_000, 128, 2_400, 128, 6_000,
+        60_000, 64, 5_000, 128, 6_000,
     )  # fmt: skip
     assert (cpu.beta_attr, cpu.attr_updates_per_step) == (0.005, 4)
     # One-cycle schedule: starts and ends at the start/end rate, peaks at the max rate.
@@ -239,3 +239,8 @@ def test_defaults_follow_the_tables_and_the_cpu_preset_is_small():
         and max(lrs) == pytest.approx(5e-3)
         and lrs[-1] == pytest.approx(5e-4, rel=0.05)
     )
+
+
+def test_flags_given_explicitly_override_the_cpu_preset():
+    args = P.Args(cpu_preset=True, vae_width=128, vae_steps=2_400).resolve()
+    assert (args.vae_width, args.vae_steps, args.vae_batch_size) == (128, 2_400, 128)
