@@ -184,7 +184,7 @@ def test_losses_fall_on_a_fixed_batch():
     assert losses[-1] < 0.6 * losses[0]
 
 
-def test_vae_stage_resumes_after_an_interruption(tmp_path, monkeypatch, capsys):
+def test_vae_and_gw_stages_resume_after_an_interruption(tmp_path, monkeypatch, capsys):
     from envs.simple_shapes import sample_dataset
 
     d = sample_dataset(200, seed=0)
@@ -210,6 +210,15 @@ def test_vae_stage_resumes_after_an_interruption(tmp_path, monkeypatch, capsys):
     P.train_vae(args, writer)
     assert "resuming from step 10" in capsys.readouterr().out
     assert not partial.exists() and (tmp_path / "ck" / "simple_shapes" / "vae.pt").is_file()
+    # The gw stage resumes the same way.
+    args.gw_steps, args.gw_batch_size = 12, 16
+    monkeypatch.setattr(P, "atomic_save", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        P.train_gw(args, writer)
+    monkeypatch.setattr(P, "atomic_save", real_save)
+    P.train_gw(args, writer)
+    assert "resuming from step 10" in capsys.readouterr().out
+    assert (tmp_path / "ck" / "simple_shapes" / "gw.pt").is_file()
 
 
 def test_defaults_follow_the_tables_and_the_cpu_preset_is_small():
