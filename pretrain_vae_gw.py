@@ -254,7 +254,10 @@ def load_data(folder: Path, env: str) -> tuple[np.ndarray, np.ndarray]:
 
 def collect(args: Args) -> None:
     folder = env_dir(args.data_dir, args)
-    have = sum(len(np.load(p)["attr"]) for p in shard_paths(folder))
+    have = 0
+    for p in shard_paths(folder):
+        with np.load(p) as d:  # reads only the attribute array, and closes the file
+            have += len(d["attr"])
     need = args.n_samples - have
     if need <= 0:
         print(f"[collect] {folder} already holds {have:,} samples >= {args.n_samples:,}")

@@ -389,11 +389,13 @@ class _ShapesCore:
         self.rotation = np.zeros(n)
         self.rgb = np.zeros((n, 3), dtype=np.uint8)
         self.steps = np.zeros(n, dtype=np.int64)
+        self.goal = np.zeros(n, dtype=bool)  # goal test of the current state, kept for info()
         self.canvas = ShapeCanvas(n)
 
     def set_states(self, idx: np.ndarray, st: dict[str, np.ndarray]) -> None:
         self.cls[idx], self.pos[idx], self.size[idx] = st["cls"], st["pos"], st["size"]
         self.rotation[idx], self.rgb[idx], self.steps[idx] = st["rotation"], st["rgb"], 0
+        self.goal[idx] = reward_and_goal(self.pos[idx], self.rotation[idx], self.coef)[1]
         self._redraw(idx)
 
     def reset(self, idx: np.ndarray, rngs: list[np.random.Generator], options: dict | None) -> None:
@@ -415,6 +417,7 @@ class _ShapesCore:
         self._redraw(np.flatnonzero(d[:, 2] != 0))
         self.steps += 1
         reward, terminated = reward_and_goal(self.pos, self.rotation, self.coef)
+        self.goal = terminated.copy()  # an autoreset rewrites self.goal; the returned flags must stay
         truncated = (self.steps >= self.max_steps) & ~terminated
         return reward, terminated, truncated
 
@@ -426,11 +429,10 @@ class _ShapesCore:
         }
 
     def info(self) -> dict[str, np.ndarray]:
-        _, goal = reward_and_goal(self.pos, self.rotation, self.coef)
         return {
             "distance": np.hypot(*(self.pos - TARGET).T),
             "angle": angle_to_upright(self.rotation),
-            "is_success": goal,
+            "is_success": self.goal.copy(),
         }
 
 
