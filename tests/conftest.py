@@ -1,8 +1,53 @@
-"""Test-wide set-up: MuJoCo must pick its headless GL back-end before anything imports mujoco."""
+"""Test-wide set-up: MuJoCo's headless GL back-end, the repository on sys.path, and the tiny pre-trained
+VAE/GW checkpoints that every agent test starts from (made once per session through the real CLI)."""
 
 import os
+import subprocess
 import sys
 from pathlib import Path
 
-os.environ.setdefault("MUJOCO_GL", "egl")
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root (envs/, scripts)
+import pytest
+
+os.environ.setdefault("MUJOCO_GL", "egl")  # before anything imports mujoco
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))  # the repository root (envs/, scripts)
+
+TINY_PRETRAIN = [
+    "--n-samples", "600", "--shard-size", "300", "--vae-steps", "12", "--vae-batch-size", "16",
+    "--vae-width", "32", "--gw-steps", "20", "--gw-batch-size", "32", "--log-every", "5",
+    "--save-every", "5", "--eval-size", "60",
+]  # fmt: skip
+
+
+def run_script(script: str, cwd: Path, *args: str, timeout: int = 300) -> str:
+    """Run a top-level script through its CLI in ``cwd``; fail with its output if it fails."""
+    out = subprocess.run(
+        [sys.executable, str(ROOT / script), *args], cwd=cwd, capture_output=True, text=True, timeout=timeout
+    )
+    assert out.returncode == 0, out.stdout + out.stderr
+    return out.stdout
+
+
+def run_pretrain(tmp_path: Path, *extra: str) -> str:
+    """pretrain_vae_gw.py with tiny settings, data in tmp_path/data and checkpoints in tmp_path/ck."""
+    paths = ["--data-dir", str(tmp_path / "data"), "--checkpoint-dir", str(tmp_path / "ck")]
+    return run_script("pretrain_vae_gw.py", tmp_path, *paths, *TINY_PRETRAIN, *extra)
+
+
+@pytest.fixture(scope="session")
+def pretrained(tmp_path_factory):
+    """Tiny Simple Shapes run of all three stages, then the CLIP-like preset on the same VAEs:
+    (folder, log, clip log) with checkpoints in folder/ck/simple_shapes/{vae,gw,clip}.pt."""
+    tmp = tmp_path_factory.mktemp("ss")
+    log = run_pretrain(tmp, "--env", "simple_shapes")
+    log_clip = run_pretrain(tmp, "--env", "simple_shapes", "--stages", "gw", "--loss-preset", "clip")
+    return tmp, log, log_clip
+
+
+@pytest.fixture(scope="session")
+def pretrained_robodesk(tmp_path_factory):
+    """Tiny RoboDesk VAEs and GW on 40 random-policy samples: (folder, log)."""
+    tmp = tmp_path_factory.mktemp("rd")
+    small = ["--n-samples", "40", "--shard-size", "20", "--render-quality", "fast", "--eval-size", "8"]
+    log = run_pretrain(tmp, "--env", "robodesk", "--vae-batch-size", "8", "--gw-batch-size", "8", *small)
+    return tmp, log

@@ -1,40 +1,18 @@
 """pretrain_vae_gw.py: stages through the CLI, GW losses by hand, learning, reloading, errors."""
 
-import subprocess
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 import torch
 import torch.nn as nn
+from conftest import run_pretrain
 from torch.utils.tensorboard import SummaryWriter
 
 import pretrain_vae_gw as P
 
-ROOT = Path(__file__).resolve().parents[1]
-TINY = [
-    "--n-samples", "600", "--shard-size", "300", "--vae-steps", "12", "--vae-batch-size", "16",
-    "--vae-width", "32", "--gw-steps", "20", "--gw-batch-size", "32", "--log-every", "5",
-    "--save-every", "5", "--eval-size", "60",
-]  # fmt: skip
 
-
-def run_cli(tmp_path, *extra):
-    cmd = [sys.executable, str(ROOT / "pretrain_vae_gw.py"), "--data-dir", str(tmp_path / "data")]
-    cmd += ["--checkpoint-dir", str(tmp_path / "ck"), *TINY, *extra]
-    out = subprocess.run(cmd, cwd=tmp_path, capture_output=True, text=True, timeout=300)
-    assert out.returncode == 0, out.stdout + out.stderr
-    return out.stdout
-
-
-@pytest.fixture(scope="module")
-def trained(tmp_path_factory):
-    """Tiny Simple Shapes run of all three stages, then the CLIP-like preset on the same VAEs."""
-    tmp = tmp_path_factory.mktemp("ss")
-    log = run_cli(tmp, "--env", "simple_shapes")
-    log_clip = run_cli(tmp, "--env", "simple_shapes", "--stages", "gw", "--loss-preset", "clip")
-    return tmp, log, log_clip
+@pytest.fixture
+def trained(pretrained):
+    return pretrained
 
 
 def test_all_stages_run_through_the_cli(trained):
@@ -47,17 +25,16 @@ def test_all_stages_run_through_the_cli(trained):
     assert "[clip]" in log_clip
     assert list((tmp / "runs").iterdir())  # TensorBoard logs under runs/
     # Collecting again appends nothing once enough samples exist; asking for more appends a shard.
-    assert "already holds 600" in run_cli(tmp, "--env", "simple_shapes", "--stages", "collect")
-    run_cli(tmp, "--env", "simple_shapes", "--stages", "collect", "--n-samples", "700")
+    assert "already holds 600" in run_pretrain(tmp, "--env", "simple_shapes", "--stages", "collect")
+    run_pretrain(tmp, "--env", "simple_shapes", "--stages", "collect", "--n-samples", "700")
     images, attrs = P.load_data(tmp / "data" / "simple_shapes", "simple_shapes")
     assert images.shape == (700, 32, 32, 3) and attrs.shape == (700, 11)
 
 
-def test_robodesk_stages_on_tiny_data(tmp_path):
-    small = ["--n-samples", "40", "--shard-size", "20", "--render-quality", "fast", "--eval-size", "8"]
-    log = run_cli(tmp_path, "--env", "robodesk", "--vae-batch-size", "8", "--gw-batch-size", "8", *small)
+def test_robodesk_stages_on_tiny_data(pretrained_robodesk):
+    tmp, log = pretrained_robodesk
     assert "RANDOM-policy RoboDesk data only" in log
-    ck = torch.load(tmp_path / "ck" / "robodesk" / "gw.pt", weights_only=False)
+    ck = torch.load(tmp / "ck" / "robodesk" / "gw.pt", weights_only=False)
     assert ck["config"]["z"] == 76 and ck["gw"]["e.v.0.weight"].shape == (512, 40)
 
 

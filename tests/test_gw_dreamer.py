@@ -1,0 +1,337 @@
+"""gw_dreamer.py: CLI runs on both envs, resume, modality ablation, world-model learning, imagination,
+stop-gradients, two-hot, lambda-returns, the actor-critic on a toy dream, errors."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+from conftest import run_script
+
+import gw_dreamer as G
+
+TINY = [
+    "--learning-starts", "100", "--batch-size", "4", "--batch-length", "8", "--imag-starts", "32",
+    "--imag-horizon", "5", "--train-ratio", "10", "--eval-episodes", "2", "--video-every", "0",
+    "--log-every", "100",
+]  # fmt: skip
+
+
+def ss_args(pretrained, **kw) -> G.Args:
+    base = dict(checkpoint_dir=str(pretrained[0] / "ck"), learning_starts=50, batch_size=4, batch_length=8)
+    return G.Args(**(base | kw)).resolve()
+
+
+@pytest.fixture(scope="module")
+def ss_run(pretrained):
+    """300 steps of GW-Dreamer on Simple Shapes through the CLI, saving at 150 and at the end."""
+    tmp = pretrained[0]
+    ck = ["--checkpoint-dir", str(tmp / "ck")]
+    log = run_script(
+        "gw_dreamer.py", tmp, "--env", "simple_shapes", *ck, *TINY, "--total-steps", "300",
+        "--eval-every", "150", "--save-every", "150",
+    )  # fmt: skip
+    return tmp, log, tmp / "ck" / "simple_shapes" / "agents" / "gw_dreamer_gw_simple_shapes_s1.pt"
+
+
+def test_simple_shapes_cli_run_trains_saves_and_logs(ss_run):
+    tmp, log, agent = ss_run
+    assert "GW-Dreamer on simple_shapes" in log and "done:" in log
+    ck = torch.load(agent, weights_only=False)
+    assert ck["kind"] == "gw_dreamer" and ck["state"]["env_steps"] == 300
+    assert ck["state"]["updates"] == (300 - 100) // 10  # one update per train_ratio env steps
+    assert ck["state"]["flops"] == ck["state"]["updates"] * ck["state"]["flops_per_update"] > 0
+    events = list((tmp / "runs" / "gw_dreamer_gw_simple_shapes_s1").glob("events.*"))
+    assert events
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(events[0].parent)).Reload()
+    tags = acc.Tags()["scalars"]
+    for tag in ("charts/episodic_return", "charts/normalised_return", "charts/SPS", "losses/loss_wm"):
+        assert tag in tags, tags
+    assert "dreams/real_top_imagined_bottom" in acc.Tags()["images"]
+
+
+def test_resume_continues_the_saved_run(ss_run):
+    tmp, _, agent = ss_run
+    log = run_script(
+        "gw_dreamer.py", tmp, "--env", "simple_shapes", "--checkpoint-dir", str(tmp / "ck"), *TINY,
+        "--total-steps", "400", "--resume", "--eval-every", "1000", "--save-every", "1000",
+    )  # fmt: skip
+    assert "resuming" in log and "at env step 300" in log
+    ck = torch.load(agent, weights_only=False)
+    assert ck["state"]["env_steps"] == 400 and ck["state"]["updates"] == (400 - 100) // 10
+
+
+def test_eval_only_with_each_drop(ss_run, pretrained):
+    tmp, _, agent = ss_run
+    log = run_script(
+        "gw_dreamer.py", tmp, "--env", "simple_shapes", "--checkpoint-dir", str(tmp / "ck"),
+        "--eval-only", "--checkpoint", str(agent), "--drop", "vision", "--eval-episodes", "3",
+    )  # fmt: skip
+    assert "drop=vision: return" in log and "3 episodes" in log
+    for drop in ("none", "attr"):
+        out = G.main(ss_args(pretrained, eval_only=True, checkpoint=str(agent), drop=drop, eval_episodes=3))
+        assert out["drop"] == drop and math.isfinite(out["return_mean"]) and out["return_sem"] >= 0
+
+
+def test_dropping_a_modality_removes_it_from_z(pretrained):
+    ck = pretrained[0] / "ck" / "simple_shapes"
+    enc = G.load_encoder("simple_shapes", ck / "vae.pt", ck / "gw.pt")
+    from envs.simple_shapes import sample_dataset
+
+    a, b = sample_dataset(4, seed=0), sample_dataset(4, seed=1)
+    mixed = {"image": b["image"], "attr": a["attr"]}  # same attributes, other images
+    assert torch.equal(enc(a, *G.FUSION["vision"]), enc(mixed, *G.FUSION["vision"]))
+    assert not torch.equal(enc(a, *G.FUSION["attr"]), enc(mixed, *G.FUSION["attr"]))
+    assert not torch.equal(enc(a), enc(mixed))
+
+
+def test_robodesk_cli_run(pretrained_robodesk):
+    tmp = pretrained_robodesk[0]
+    log = run_script(
+        "gw_dreamer.py", tmp, "--env", "robodesk", "--task", "push_green",
+        "--checkpoint-dir", str(tmp / "ck"), "--render-quality", "fast", *TINY, "--eval-episodes", "1",
+        "--total-steps", "200", "--episode-length", "240", "--batch-size", "2", "--imag-starts", "8",
+        "--eval-every", "1000", timeout=600,
+    )  # fmt: skip
+    assert "GW-Dreamer on robodesk_push_green" in log and "final_success_count" in log
+    ck = torch.load(
+        tmp / "ck" / "robodesk" / "agents" / "gw_dreamer_gw_robodesk_push_green_s1.pt", weights_only=False
+    )
+    assert ck["state"]["updates"] == 10 and ck["task"] == "push_green"
+
+
+def test_clip_checkpoint_makes_clip_dreamer(pretrained):
+    ck = pretrained[0] / "ck" / "simple_shapes"
+    enc = G.load_encoder("simple_shapes", ck / "vae.pt", ck / "clip.pt")
+    assert enc.preset == "clip"
+
+
+def test_missing_or_mismatched_checkpoints_are_explained(pretrained, pretrained_robodesk, tmp_path):
+    with pytest.raises(FileNotFoundError, match="python pretrain_vae_gw.py --env simple_shapes"):
+        G.main(G.Args(checkpoint_dir=str(tmp_path)))
+    rd_gw = pretrained_robodesk[0] / "ck" / "robodesk" / "gw.pt"
+    with pytest.raises(ValueError, match="made for env 'robodesk'.*'simple_shapes'"):
+        G.main(ss_args(pretrained, gw_checkpoint=str(rd_gw)))
+    with pytest.raises(FileNotFoundError, match="python gw_dreamer.py --env simple_shapes"):
+        G.main(ss_args(pretrained, eval_only=True, checkpoint=str(tmp_path / "none.pt")))
+    with pytest.raises(ValueError, match="unknown RoboDesk task 'fly'"):
+        G.main(G.Args(env="robodesk", task="fly", checkpoint_dir=str(pretrained_robodesk[0] / "ck")))
+    with pytest.raises(ValueError, match="--cpu-preset is for Simple Shapes"):
+        G.Args(env="robodesk", cpu_preset=True).resolve()
+
+
+def test_agent_checkpoint_reloads_to_identical_outputs(ss_run):
+    ck = torch.load(ss_run[2], weights_only=False)
+    a, b = G.Agent("simple_shapes", 10, "twohot"), G.Agent("simple_shapes", 10, "twohot")
+    a.load_state_dict(ck["agent"])
+    b.load_state_dict(ck["agent"])
+    h, z, act = torch.randn(5, 64), torch.rand(5, 10), F.one_hot(torch.arange(5), 7).float()
+    assert torch.equal(a.actor.dist(h).probs, b.actor.dist(h).probs)
+    assert torch.equal(a.wm.heads(a.wm.step(h, z, act))[0], b.wm.heads(b.wm.step(h, z, act))[0])
+
+
+# --------------------------------------------------------------------------------------------------
+# Pieces
+# --------------------------------------------------------------------------------------------------
+def collect_random(encoder, episodes: int, seed: int = 0) -> G.Replay:
+    """A replay buffer of random-policy Simple Shapes episodes, stored as the training loop stores them."""
+    from envs.simple_shapes import SimpleShapesVectorEnv
+
+    env, rng = SimpleShapesVectorEnv(1, max_episode_steps=40), np.random.default_rng(seed)
+    replay = G.Replay(10_000, 1, 10, 7, seed)
+    obs, _ = env.reset(seed=seed)
+    first, done_eps = 1.0, 0
+    while done_eps < episodes:
+        a = rng.integers(0, 7, 1)
+        z = encoder(obs).numpy()
+        obs, r, term, trunc, info = env.step(a)
+        replay.add([0], z, np.eye(7)[a], r, term, [first], [0])
+        first = 0.0
+        if term[0] or trunc[0]:
+            replay.add([0], encoder(info["final_obs"]).numpy(), np.zeros((1, 7)), [0], [0], [0], [1])
+            first, done_eps = 1.0, done_eps + 1
+    return replay
+
+
+def test_replay_sequences_are_consecutive_and_mark_episode_ends():
+    replay = G.Replay(capacity=20, num_envs=1, z_dim=1, action_dim=1, seed=0)
+    for t in range(35):  # wraps around the 20-entry ring
+        replay.add([0], [[t]], [[0]], [t], [0], [t % 10 == 0], [t % 10 == 9])
+    s = replay.sample(50, 5)
+    z = s["z"][..., 0]
+    assert np.all(np.diff(z, axis=1) == 1) and z.min() >= 15 and z.max() <= 34  # only the newest 20
+    np.testing.assert_array_equal(s["first"], (z % 10 == 0))
+    np.testing.assert_array_equal(s["last"], (z % 10 == 9))
+
+
+def test_world_model_loss_falls_on_a_fixed_batch(pretrained):
+    ck = pretrained[0] / "ck" / "simple_shapes"
+    enc = G.load_encoder("simple_shapes", ck / "vae.pt", ck / "gw.pt")
+    replay = collect_random(enc, 4)
+    batch = {k: torch.as_tensor(v) for k, v in replay.sample(16, 12).items()}
+    args = G.Args().resolve()
+    torch.manual_seed(0)
+    agent = G.Agent("simple_shapes", 10, "twohot")
+    opt = torch.optim.Adam(agent.wm.parameters(), lr=1e-3)
+    losses = []
+    for _ in range(60):
+        loss, terms, h_before, valid = G.world_model_loss(agent.wm, agent.reward_dec, batch, args)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert h_before.shape == (16, 12, 64) and valid.shape == (16, 12)
+    assert losses[-1] < 0.5 * losses[0], losses[::10]
+    assert terms["loss_z"] < 0.2 and terms["loss_d"] < 0.05  # the floor of the reward term is its entropy
+
+
+def test_non_finite_losses_stop_training_with_a_clear_error():
+    torch.manual_seed(0)
+    agent, args = G.Agent("simple_shapes", 10, "twohot"), G.Args(batch_size=2, batch_length=4).resolve()
+    replay = G.Replay(100, 1, 10, 7, 0)
+    for t in range(10):
+        replay.add(
+            [0], np.full((1, 10), np.nan if t == 5 else 0.1), np.eye(7)[[1]], [-1.0], [0], [t == 0], [0]
+        )
+    with pytest.raises(FloatingPointError, match="non-finite world-model loss at env step 7"):
+        for _ in range(20):  # some windows miss the NaN entry
+            G.train_update(
+                agent,
+                G.make_optimizers(agent, args),
+                replay,
+                args,
+                {"env_steps": 7, "return_scale": 0},
+                "cpu",
+            )
+    assert all(torch.isfinite(p).all() for p in agent.parameters())  # the bad update was not applied
+
+
+def test_imagination_shapes_and_stop_gradients():
+    torch.manual_seed(0)
+    agent = G.Agent("simple_shapes", 10, "twohot")
+    args = G.Args().resolve()
+    h0, z0 = torch.randn(6, 64), torch.rand(6, 10) * 2 - 1
+    hs, acts, rews, conts = G.imagine(agent.wm, agent.actor, agent.reward_dec, h0, z0, 7)
+    assert hs.shape == (8, 6, 64) and acts.shape == (7, 6, 7) and rews.shape == conts.shape == (7, 6)
+    assert torch.equal(hs[0], h0) and not hs.requires_grad and torch.all(acts.sum(-1) == 1)
+    assert torch.all((conts >= 0) & (conts <= 1))
+    loss_a, loss_c, _, _ = G.actor_critic_loss(
+        agent.actor, agent.critic, agent.slow_critic, agent.twohot, hs, acts, rews, conts,
+        torch.ones(6), 0.0, 0, args,
+    )  # fmt: skip
+    (loss_a + loss_c).backward()
+    assert all(p.grad is None for p in agent.wm.parameters())  # AC gradients stop at the world model
+    assert all(p.grad is not None for p in agent.actor.parameters())
+    assert all(p.grad is None for p in agent.slow_critic.parameters())
+    agent.zero_grad(set_to_none=True)
+    batch = {
+        "z": torch.rand(3, 5, 10), "a": F.one_hot(torch.randint(0, 7, (3, 5)), 7).float(),
+        "r": -torch.rand(3, 5), "d": torch.zeros(3, 5), "first": torch.zeros(3, 5), "last": torch.zeros(3, 5),
+    }  # fmt: skip
+    G.world_model_loss(agent.wm, agent.reward_dec, batch, args)[0].backward()
+    assert all(p.grad is None for p in [*agent.actor.parameters(), *agent.critic.parameters()])
+
+
+def test_world_model_restarts_its_state_at_episode_starts():
+    torch.manual_seed(0)
+    agent = G.Agent("simple_shapes", 10, "twohot")
+    args = G.Args().resolve()
+    batch = {
+        "z": torch.rand(2, 6, 10), "a": F.one_hot(torch.randint(0, 7, (2, 6)), 7).float(),
+        "r": torch.zeros(2, 6), "d": torch.zeros(2, 6), "first": torch.zeros(2, 6), "last": torch.zeros(2, 6),
+    }  # fmt: skip
+    batch["first"][:, 3] = 1
+    h = G.world_model_loss(agent.wm, agent.reward_dec, batch, args)[2]
+    assert torch.all(h[:, 0] == 0) and torch.all(h[:, 3] == 0) and torch.all(h[:, 2] != 0)
+
+
+def test_symlog_and_two_hot_round_trip():
+    twohot = G.TwoHot()
+    y = torch.tensor([-3000.0, -45.5, -1.0, -0.01, 0.0, 0.3, 7.0, 1e4])
+    torch.testing.assert_close(G.symexp(G.symlog(y)), y)
+    enc = twohot.encode(y)
+    torch.testing.assert_close(enc.sum(-1), torch.ones(len(y)))
+    assert torch.all((enc > 0).sum(-1) <= 2)
+    # Logits that put the two-hot weights on the bins decode back to y.
+    torch.testing.assert_close(twohot.mean(torch.log(enc + 1e-30)), y, rtol=1e-4, atol=1e-4)
+    # The two-hot cross-entropy is smallest at the target's own encoding.
+    logits = torch.log(enc + 1e-30)
+    assert torch.all(twohot.loss(logits, y) < twohot.loss(logits.roll(1, 0), y))
+
+
+def test_lambda_returns_match_hand_computed_values():
+    rewards = torch.tensor([[1.0], [2.0]])
+    conts = torch.tensor([[1.0], [0.5]])
+    values = torch.tensor([[0.0], [10.0], [20.0]])
+    g, lam = 0.9, 0.5
+    r1 = 2.0 + g * 0.5 * 20.0  # R_1 = r_2 + g c_2 v_2 (R_2 = v_2)
+    r0 = 1.0 + g * 1.0 * ((1 - lam) * 10.0 + lam * r1)
+    torch.testing.assert_close(G.lambda_returns(rewards, conts, values, g, lam), torch.tensor([[r0], [r1]]))
+
+
+class ToyDream(nn.Module):
+    """A dream in which only action 2 pays: the state remembers the last action, reward = 1 for action 2."""
+
+    hidden = 7
+
+    def step(self, h, z, a):
+        return a
+
+    def heads(self, h_next):
+        reward = torch.zeros(len(h_next), 255)
+        return torch.zeros(len(h_next), 10), reward, torch.full((len(h_next),), -10.0)
+
+
+def test_actor_critic_learns_the_rewarded_action_in_a_toy_dream():
+    torch.manual_seed(0)
+    args = G.Args().resolve()
+    actor, critic = G.Actor(7, 7, 2, discrete=True), G.Critic(7, 2)
+    slow, twohot = G.Critic(7, 2), G.TwoHot()
+
+    class Rewards:  # reward 1 for action 2
+        def value(self, out):
+            return torch.zeros(len(out))
+
+    opt = torch.optim.Adam([*actor.parameters(), *critic.parameters()], lr=1e-3)
+    h0 = torch.zeros(64, 7)
+    scale = 0.0
+    for i in range(150):
+        hs, acts, _, conts = G.imagine(ToyDream(), actor, Rewards(), h0, torch.zeros(64, 10), 4)
+        rews = acts[..., 2]  # the dream's reward for the action just taken
+        la, lc, scale, _ = G.actor_critic_loss(
+            actor, critic, slow, twohot, hs, acts, rews, conts, torch.ones(64), scale, i, args
+        )
+        opt.zero_grad()
+        (la + lc).backward()
+        opt.step()
+    assert actor.dist(torch.zeros(1, 7)).probs[0, 2] > 0.6
+
+
+def test_flop_count_of_a_linear_layer():
+    layer, x = nn.Linear(4, 3), torch.randn(5, 4, requires_grad=True)
+    _, flops = G.count_flops(lambda: layer(x).sum().backward())
+    assert flops == 3 * (2 * 5 * 4 * 3)  # forward, gradient of the input, gradient of the weight
+
+
+def test_defaults_follow_the_tables_and_the_cpu_preset():
+    ss, rd = G.Args().resolve(), G.Args(env="robodesk").resolve()
+    assert (ss.batch_size, ss.batch_length, ss.train_ratio, ss.wm_lr, ss.imag_horizon) == (
+        64,
+        32,
+        4.0,
+        1e-3,
+        20,
+    )
+    assert (rd.batch_size, rd.batch_length, rd.train_ratio, rd.wm_lr, rd.ac_lr) == (32, 128, 2.0, 3e-4, 3e-4)
+    assert ss.buffer_size == rd.buffer_size == 100_000 and ss.lam == 0.95 and ss.imag_starts is None
+    cpu = G.Args(cpu_preset=True).resolve()
+    assert (cpu.imag_starts, cpu.train_ratio) == (G.CPU_PRESET["imag_starts"], G.CPU_PRESET["train_ratio"])
+    assert G.Args(cpu_preset=True, train_ratio=2.0).resolve().train_ratio == 2.0  # explicit flags win
+    sizes = {
+        k: sum(p.numel() for p in getattr(G.Agent("robodesk", 76, "twohot"), k).parameters()) for k in ("wm",)
+    }
+    assert 7.0e6 < sizes["wm"] < 8.5e6  # appendix Table "sizes": RoboDesk world model 7.8M
