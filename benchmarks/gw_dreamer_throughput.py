@@ -72,7 +72,7 @@ def time_updates(env: str, a: Args, **overrides) -> dict:
         torch.cuda.synchronize()
     sec = (time.perf_counter() - t) / a.updates
     starts = args.imag_starts or args.batch_size * args.batch_length
-    per_env_step = 1 / (sec * args.train_ratio)  # env steps/s that the updates alone allow
+    per_env_step = args.train_ratio / sec  # env steps/s that the updates alone allow (train ratio)
     return {"starts": starts, "s_per_update": sec, "flops": flops, "env_steps_per_s": per_env_step}
 
 
