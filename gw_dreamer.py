@@ -306,10 +306,9 @@ class FrozenEncoder(nn.Module):
     @torch.no_grad()
     def forward(self, obs: dict[str, np.ndarray], alpha_v: float = 0.5, alpha_attr: float = 0.5):
         dev = self.attr_mean.device
-        n = len(obs["attr"])
         # A removed modality contributes nothing: its fusion weight is 0 and its input is not read.
-        u_v = torch.zeros(n, self.gw.e["v"][0].in_features, device=dev)
-        u_attr = torch.zeros_like(u_v)
+        absent = torch.zeros(len(obs["attr"]), self.gw.e["v"][0].in_features, device=dev)
+        u_v = u_attr = absent
         if alpha_v > 0:
             image = torch.as_tensor(obs["image"], device=dev).permute(0, 3, 1, 2).float() / 255.0
             u_v = self.vae_v.encode_mean(image)
@@ -694,7 +693,7 @@ class Agent(nn.Module):
 
 
 @torch.no_grad()
-def run_episodes(agent: Agent, encoder: FrozenEncoder, args: Args, n: int, drop: str, seed: int, mode=False):
+def run_episodes(agent: Agent, encoder: FrozenEncoder, args: Args, n: int, drop: str, seed: int):
     """n full episodes with fresh environments (seeds seed..seed+n-1); returns per-episode returns and
     success counts (RoboDesk: steps in which the task's success criterion holds)."""
     dev = encoder.attr_mean.device
@@ -706,7 +705,7 @@ def run_episodes(agent: Agent, encoder: FrozenEncoder, args: Args, n: int, drop:
     alive = np.ones(n, bool)
     while alive.any():
         z = encoder(obs, *alpha)
-        a = agent.actor.act(h, mode=mode)
+        a = agent.actor.act(h)
         obs, r, term, trunc, info = envs_.step(action_for_env(a, agent.discrete))
         returns += r * alive
         successes += step_success(info, n) * alive
@@ -762,7 +761,8 @@ def gw_fingerprint(encoder: FrozenEncoder) -> float:
     return float(sum(p.double().sum() for p in encoder.parameters()))
 
 
-def load_agent_checkpoint(path: Path, env: str) -> dict:
+def load_agent_checkpoint(path: Path, env: str, fingerprint: float) -> dict:
+    """An agent checkpoint of ``env`` trained on the frozen weights whose fingerprint is given."""
     if not path.is_file():
         raise FileNotFoundError(
             f"no agent checkpoint at {path}; train one with `python gw_dreamer.py --env {env}`"
@@ -772,6 +772,10 @@ def load_agent_checkpoint(path: Path, env: str) -> dict:
         raise ValueError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected a gw_dreamer agent")
     if ckpt.get("env") != env:
         raise ValueError(f"{path} is an agent for env {ckpt.get('env')!r}, but --env is {env!r}")
+    if abs(ckpt["gw_fingerprint"] - fingerprint) > 1e-6 * max(1.0, abs(fingerprint)):
+        raise ValueError(
+            f"{path} was trained on other VAE/GW weights ({ckpt['vae_checkpoint']}, {ckpt['gw_checkpoint']})"
+        )
     return ckpt
 
 
@@ -815,7 +819,7 @@ def train_update(agent: Agent, opts: dict, replay: Replay, args: Args, state: di
     hs, acts, rews, conts = imagine(agent.wm, agent.actor, agent.reward_dec, h0, z0, args.imag_horizon)
     loss_actor, loss_critic, state["return_scale"], stats = actor_critic_loss(
         agent.actor, agent.critic, agent.slow_critic, agent.twohot, hs, acts, rews, conts,
-        start_w, state["return_scale"], state.get("updates", 0), args,
+        start_w, state["return_scale"], state["updates"], args,
     )  # fmt: skip
     if not (torch.isfinite(loss_actor) and torch.isfinite(loss_critic)):
         raise FloatingPointError(f"non-finite actor-critic loss at env step {state['env_steps']:,}")
@@ -876,9 +880,7 @@ def main(args: Args) -> dict:
         return (ret - ref[0]) / (ref[1] - ref[0]) if ref else float("nan")
 
     if args.eval_only:
-        ck = load_agent_checkpoint(agent_path, args.env)
-        if abs(ck["gw_fingerprint"] - fingerprint) > 1e-6 * max(1.0, abs(fingerprint)):
-            raise ValueError(f"{agent_path} was trained on other VAE/GW weights than {vae_path} / {gw_path}")
+        ck = load_agent_checkpoint(agent_path, args.env, fingerprint)
         agent.load_state_dict(ck["agent"])
         rets, succ = run_episodes(agent, encoder, args, args.eval_episodes, args.drop, seed=args.seed + 10**6)
         sem = rets.std(ddof=1) / math.sqrt(len(rets)) if len(rets) > 1 else 0.0
@@ -910,9 +912,7 @@ def main(args: Args) -> dict:
         "next_video": args.video_every or args.total_steps,
     }
     if args.resume:
-        ck = load_agent_checkpoint(agent_path, args.env)
-        if abs(ck["gw_fingerprint"] - fingerprint) > 1e-6 * max(1.0, abs(fingerprint)):
-            raise ValueError(f"{agent_path} was trained on other VAE/GW weights than {vae_path} / {gw_path}")
+        ck = load_agent_checkpoint(agent_path, args.env, fingerprint)
         agent.load_state_dict(ck["agent"])
         for name, opt in opts.items():
             opt.load_state_dict(ck["opts"][name])

@@ -75,6 +75,9 @@ def test_eval_only_with_each_drop(ss_run, pretrained):
     for drop in ("none", "attr"):
         out = G.main(ss_args(pretrained, eval_only=True, checkpoint=str(agent), drop=drop, eval_episodes=3))
         assert out["drop"] == drop and math.isfinite(out["return_mean"]) and out["return_sem"] >= 0
+    clip = str(pretrained[0] / "ck" / "simple_shapes" / "clip.pt")  # not the GW this agent was trained on
+    with pytest.raises(ValueError, match="trained on other VAE/GW weights"):
+        G.main(ss_args(pretrained, eval_only=True, checkpoint=str(agent), gw_checkpoint=clip))
 
 
 def test_dropping_a_modality_removes_it_from_z(pretrained):
@@ -204,7 +207,7 @@ def test_non_finite_losses_stop_training_with_a_clear_error():
                 G.make_optimizers(agent, args),
                 replay,
                 args,
-                {"env_steps": 7, "return_scale": 0},
+                {"env_steps": 7, "updates": 0, "return_scale": 0},
                 "cpu",
             )
     assert all(torch.isfinite(p).all() for p in agent.parameters())  # the bad update was not applied
