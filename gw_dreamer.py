@@ -37,6 +37,7 @@ from torch.utils.flop_counter import FlopCounterMode
 from torch.utils.tensorboard import SummaryWriter
 
 import envs  # noqa: F401  (registers the environments)
+from envs.simple_shapes import reference_returns as ss_reference_returns
 
 
 @dataclass
@@ -654,29 +655,6 @@ def action_for_env(a: torch.Tensor, discrete: bool) -> np.ndarray:
     return a.argmax(-1).cpu().numpy() if discrete else a.cpu().numpy().astype(np.float32)
 
 
-def reference_returns(episodes: int = 1_000, seed: int = 10_000) -> tuple[float, float]:
-    """Mean Simple Shapes returns of a uniformly random policy and the scripted greedy policy: the 0 and 1
-    of the normalised return (PAPER_NOTES)."""
-    from envs.simple_shapes import N_ACTIONS, SimpleShapesVectorEnv, greedy_action
-
-    out = []
-    for policy in ("random", "greedy"):
-        env = SimpleShapesVectorEnv(episodes)
-        env.reset(seed=seed)
-        rng = np.random.default_rng(seed)
-        total, alive = np.zeros(episodes), np.ones(episodes, bool)
-        while alive.any():
-            if policy == "random":
-                a = rng.integers(0, N_ACTIONS, episodes)
-            else:
-                a = greedy_action(env._core.pos, env._core.rotation)
-            _, r, term, trunc, _ = env.step(a)
-            total += r * alive
-            alive &= ~(term | trunc)
-        out.append(float(total.mean()))
-    return out[0], out[1]
-
-
 class Agent(nn.Module):
     """The trainable part of GW-Dreamer: world model, actor, critic (and the slow critic)."""
 
@@ -874,7 +852,7 @@ def main(args: Args) -> dict:
     torch.manual_seed(args.seed)
     agent = Agent(args.env, encoder.z_dim, args.reward_loss).to(dev)
     discrete = agent.discrete
-    ref = reference_returns() if args.env == "simple_shapes" else None
+    ref = ss_reference_returns() if args.env == "simple_shapes" else None
 
     def normalise(ret: float) -> float:
         return (ret - ref[0]) / (ref[1] - ref[0]) if ref else float("nan")

@@ -593,3 +593,24 @@ def sample_dataset(n: int, seed: int = 0) -> dict[str, np.ndarray]:
     images = render_shapes(st["cls"], st["pos"][:, 0], st["pos"][:, 1], st["size"], st["rotation"], st["rgb"])
     attr = state_to_attr(st["cls"], st["pos"], st["size"], st["rotation"], st["rgb"])
     return {"image": images, "attr": attr}
+
+
+def reference_returns(episodes: int = 1_000, seed: int = 10_000) -> tuple[float, float]:
+    """Mean returns of a uniformly random policy and of ``greedy_action`` over ``episodes`` episodes:
+    the 0 and the 1 of the normalised return every agent script logs (PAPER_NOTES)."""
+    out = []
+    for policy in ("random", "greedy"):
+        env = SimpleShapesVectorEnv(episodes)
+        env.reset(seed=seed)
+        rng = np.random.default_rng(seed)
+        total, alive = np.zeros(episodes), np.ones(episodes, bool)
+        while alive.any():
+            if policy == "random":
+                a = rng.integers(0, N_ACTIONS, episodes)
+            else:
+                a = greedy_action(env._core.pos, env._core.rotation)
+            _, r, term, trunc, _ = env.step(a)
+            total += r * alive
+            alive &= ~(term | trunc)
+        out.append(float(total.mean()))
+    return out[0], out[1]

@@ -46,8 +46,11 @@ def pretrained(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def pretrained_robodesk(tmp_path_factory):
-    """Tiny RoboDesk VAEs and GW on 40 random-policy samples: (folder, log)."""
+    """Tiny RoboDesk VAEs, GW and CLIP-like model on 40 random-policy samples: (folder, log of the first)."""
     tmp = tmp_path_factory.mktemp("rd")
     small = ["--n-samples", "40", "--shard-size", "20", "--render-quality", "fast", "--eval-size", "8"]
     log = run_pretrain(tmp, "--env", "robodesk", "--vae-batch-size", "8", "--gw-batch-size", "8", *small)
+    run_pretrain(
+        tmp, "--env", "robodesk", "--stages", "gw", "--loss-preset", "clip", "--gw-batch-size", "8", *small
+    )
     return tmp, log

@@ -21,7 +21,11 @@ def test_all_stages_run_through_the_cli(trained):
     for name, kind in (("vae", "vae"), ("gw", "gw"), ("clip", "gw")):
         ck = torch.load(tmp / "ck" / "simple_shapes" / f"{name}.pt", weights_only=False)
         assert ck["kind"] == kind and ck["env"] == "simple_shapes"
-    assert "held-out evaluation" in log and "tr_image_to_class_accuracy" in log
+    assert (
+        "held-out evaluation" in log
+        and "tr_image_to_class_accuracy" in log
+        and "fusion_to_rotation_error_rad" in log
+    )
     assert "[clip]" in log_clip
     assert list((tmp / "runs").iterdir())  # TensorBoard logs under runs/
     # Collecting again appends nothing once enough samples exist; asking for more appends a shard.

@@ -272,3 +272,13 @@ def test_dataset_is_reproducible_and_in_range():
     assert set(np.round(size).astype(int)) == set(range(7, 15))
     assert np.all(d1["image"].reshape(2000, -1).max(1) > 0)
     assert len(OUTLINES) == 3
+
+
+def test_reference_returns_bracket_the_normalised_return():
+    """0 = uniformly random policy, 1 = greedy policy; the greedy policy reaches the goal in every episode
+    (it never takes more steps than |dx| + |dy| + the rotation steps), the random one almost never."""
+    from envs.simple_shapes import reference_returns
+
+    random_ret, greedy_ret = reference_returns(episodes=200, seed=5)
+    assert random_ret < -1_800 and -600 < greedy_ret < -100, (random_ret, greedy_ret)
+    assert reference_returns(episodes=200, seed=5) == (random_ret, greedy_ret)  # seeded

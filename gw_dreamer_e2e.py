@@ -1,0 +1,1192 @@
+"""GW-Dreamer end to end: the Global Workspace is trained with the world model and the actor-critic.
+
+Paper: section "Results" (GW-Dreamer-end-to-end), appendix "GW-Dreamer details / Training", Table
+"Hyperparameters used for the training of the Global Workspace in GW-Dreamer End-to-End" and Algorithm 2.
+Only the VAEs are pre-trained; the GW starts from random weights.
+
+    python pretrain_vae_gw.py --env simple_shapes --cpu-preset --stages collect vae   # frozen VAEs only
+    python gw_dreamer_e2e.py --env simple_shapes                       # paper settings
+    python gw_dreamer_e2e.py --env simple_shapes --cpu-preset          # settings for a 2-core CPU
+    python gw_dreamer_e2e.py --env robodesk --task push_green
+    python gw_dreamer_e2e.py --env simple_shapes --eval-only --checkpoint PATH --drop vision   # ablation
+
+Each global training step (Algorithm 2): two GW updates with the full L_GW of eq. 1-3 on replayed
+observations (their frozen VAE means u_v, u_attr), then the world model on z_t = GW(u_v, u_attr) at
+alpha_v = alpha_attr = 0.5 from the updated GW, then the actor-critic on dreams, as in gw_dreamer.py.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import os
+import random
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Literal
+
+import gymnasium as gym
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+import tyro
+from torch.utils.flop_counter import FlopCounterMode
+from torch.utils.tensorboard import SummaryWriter
+
+import envs  # noqa: F401  (registers the environments)
+from envs.simple_shapes import reference_returns as ss_reference_returns
+
+
+@dataclass
+class Args:
+    env: Literal["simple_shapes", "robodesk"] = "simple_shapes"
+    """environment"""
+    task: str = "push_green"
+    """RoboDesk task (ignored for Simple Shapes)"""
+    seed: int = 1
+    """seed of the environments, the networks and the replay sampling"""
+    exp_name: str = "gw_dreamer_e2e"
+    """run name prefix: runs/<exp_name>_<env>[_<task>]_s<seed>"""
+    device: str = "cuda" if torch.cuda.is_available() else "cpu"
+    """torch device"""
+    torch_threads: int = 0
+    """torch CPU threads (0: torch's default)"""
+    cpu_preset: bool = False
+    """Simple Shapes settings measured on a 2-core CPU (see CPU_PRESET and the README); flags left at
+    their paper default take the preset's value"""
+
+    # frozen VAEs (pretrain_vae_gw.py --stages collect vae)
+    checkpoint_dir: str = "checkpoints"
+    """where pretrain_vae_gw.py wrote <env>/vae.pt; agent checkpoints go to <env>/agents/"""
+    vae_checkpoint: str | None = None
+    """VAE checkpoint (default <checkpoint_dir>/<env>/vae.pt)"""
+
+    # Global Workspace trained end to end (appendix Table "GW training in GW-Dreamer End-to-End")
+    gw_updates: int = 2
+    """GW updates per global training step (appendix "Training": two)"""
+    gw_batch_size: int | None = None
+    """replayed observations per GW update (default: batch_size x batch_length, the observations of one
+    world-model batch; 2,048 for Simple Shapes, close to the 2,056 of GW pre-training)"""
+    gw_lr_start: float | None = None
+    """GW OneCycle start learning rate (default 3e-3 Simple Shapes, 1e-4 RoboDesk)"""
+    gw_lr_max: float | None = None
+    """GW OneCycle max learning rate (default 1e-2 Simple Shapes, 3e-4 RoboDesk)"""
+    gw_lr_end: float | None = None
+    """GW OneCycle end learning rate, kept after the cycle (default 1e-3 Simple Shapes, 1e-4 RoboDesk)"""
+    gw_cycle: int | None = None
+    """GW updates in one OneCycle schedule (default 25,000 Simple Shapes, 50,000 RoboDesk)"""
+    gw_weight_decay: float | None = None
+    """GW AdamW weight decay (default: the GW pre-training table's 1e-5 Simple Shapes, 1e-6 RoboDesk)"""
+    loss_preset: Literal["gw", "clip"] = "gw"
+    """L_GW weights: gw (beta_dcy = beta_cy = beta_tr = beta_fusion = 1, beta_cont = 0.1) or clip
+    (contrastive only; an end-to-end CLIP-Dreamer)"""
+    fusion_temperature: float = 0.2
+    """fusion weights of L_fusion are softmax(U / T), U uniform per modality (as in pre-training)"""
+    contrastive_temperature: float = 0.07
+    """fixed temperature of the contrastive loss (as in pre-training)"""
+
+    # training (appendix Table "GW-Dreamer training")
+    total_steps: int | None = None
+    """environment steps (default 100,000 Simple Shapes, 1,000,000 RoboDesk)"""
+    num_envs: int = 1
+    """environments stepped together"""
+    learning_starts: int = 1_000
+    """random-policy steps that fill the replay buffer before the first update"""
+    buffer_size: int = 100_000
+    """replay capacity in transitions"""
+    batch_size: int | None = None
+    """replayed sequences per update (default 64 Simple Shapes, 32 RoboDesk)"""
+    batch_length: int | None = None
+    """transitions per replayed sequence (default 32 Simple Shapes, 128 RoboDesk)"""
+    train_ratio: float | None = None
+    """the table's train ratio (default 4 Simple Shapes, 2 RoboDesk), read as environment steps per
+    training update (see `updates_due`)"""
+    imag_horizon: int = 20
+    """imagined steps per rollout"""
+    imag_starts: int | None = None
+    """imagined rollouts per update, started from this many of the batch's replayed states taken at
+    random (default: all batch_size x batch_length of them)"""
+    wm_lr: float | None = None
+    """world-model Adam learning rate (default 1e-3 Simple Shapes, 3e-4 RoboDesk)"""
+    ac_lr: float = 3e-4
+    """actor and critic Adam learning rate"""
+    wm_z_coef: float = 1.0
+    """weight of the z_{t+1} MSE in L_WM"""
+    wm_reward_coef: float = 1.0
+    """weight of the reward term in L_WM"""
+    wm_done_coef: float = 1.0
+    """weight of the done BCE in L_WM"""
+    reward_loss: Literal["twohot", "mse"] = "twohot"
+    """reward head: 255-bin two-hot over symlog rewards (the table's FC_256 output, PAPER_NOTES) or one
+    output trained with MSE on symlog(r) (the text's 'MSE')"""
+    gamma: float = 1 - 1 / 333
+    """discount (DreamerV3)"""
+    lam: float = 0.95
+    """lambda of the lambda-returns"""
+    entropy_coef: float = 3e-4
+    """actor entropy regulariser (DreamerV3)"""
+    slow_critic_decay: float = 0.98
+    """EMA decay of the slow critic that regularises the critic (DreamerV3)"""
+    return_norm_decay: float = 0.99
+    """EMA decay of the return scale max(1, P95 - P5) (DreamerV3)"""
+
+    # environments
+    render_quality: Literal["faithful", "fast"] = "faithful"
+    """RoboDesk image quality (fast: CPU experiments only, see the README)"""
+    episode_length: int = 2000
+    """RoboDesk episode length in physics-control repeats (paper: 2000, i.e. 500 agent steps)"""
+
+    # evaluation, logging, checkpoints
+    eval_every: int = 5_000
+    """environment steps between evaluations"""
+    eval_episodes: int = 10
+    """episodes per evaluation (and for --eval-only)"""
+    criterion: float = 0.75
+    """normalised return that defines the return criterion (Simple Shapes)"""
+    smoothing: int = 10
+    """training episodes in the sliding window of the smoothed return (paper: 10)"""
+    video_every: int = 20_000
+    """environment steps between dream videos (0: only at the end)"""
+    log_every: int = 1_000
+    """environment steps between TensorBoard scalars and progress lines"""
+    save_every: int = 10_000
+    """environment steps between resumable checkpoints"""
+    resume: bool = False
+    """continue the run stored at --checkpoint (default: this run's agent checkpoint)"""
+    checkpoint: str | None = None
+    """agent checkpoint (default <checkpoint_dir>/<env>/agents/<run name>.pt)"""
+    eval_only: bool = False
+    """only evaluate --checkpoint (the modality ablation with --drop) and exit"""
+    drop: Literal["none", "vision", "attr"] = "none"
+    """modality removed at evaluation: vision -> alpha = (0, 1), attr -> alpha = (1, 0)"""
+
+    def resolve(self) -> Args:
+        """The CPU preset (if asked) for every flag left at its default, then the tables' defaults."""
+        ss = self.env == "simple_shapes"
+        if self.cpu_preset:
+            if not ss:
+                raise ValueError("--cpu-preset is for Simple Shapes; RoboDesk at paper scale needs a GPU")
+            plain = Args(env=self.env)
+            for name, value in CPU_PRESET.items():
+                if getattr(self, name) == getattr(plain, name):  # flags given explicitly win
+                    setattr(self, name, value)
+        for name, ss_value, rd_value in [
+            ("total_steps", 100_000, 1_000_000),
+            ("batch_size", 64, 32),
+            ("batch_length", 32, 128),
+            ("train_ratio", 4.0, 2.0),
+            ("wm_lr", 1e-3, 3e-4),
+            ("gw_lr_start", 3e-3, 1e-4),
+            ("gw_lr_max", 1e-2, 3e-4),
+            ("gw_lr_end", 1e-3, 1e-4),
+            ("gw_cycle", 25_000, 50_000),
+            ("gw_weight_decay", 1e-5, 1e-6),
+        ]:
+            if getattr(self, name) is None:
+                setattr(self, name, ss_value if ss else rd_value)
+        if self.gw_batch_size is None:
+            self.gw_batch_size = self.batch_size * self.batch_length
+        return self
+
+
+# Settings measured on this 2-core CPU (README): fewer imagination starts per update and fewer updates
+# than the paper's GPU run; every network keeps the paper's size.
+CPU_PRESET = {
+    "total_steps": 30_000,
+    "imag_starts": 256,
+    "train_ratio": 8.0,
+    "gw_batch_size": 256,
+}
+
+# Network sizes of the appendix tables ("GRU architecture", "World Model heads", "Actor-Critic").
+SIZES = {
+    "simple_shapes": {"gru_in": 32, "gru_hidden": 64, "z_head": (), "ac_layers": 3, "actions": 7},
+    # The RoboDesk actor-critic table gives x in R^512 while the GRU table gives h in R^1024; the AC
+    # reads h_t (text), so its input is 1024 and its 4 hidden layers are 512 wide as listed.
+    "robodesk": {"gru_in": 1024, "gru_hidden": 1024, "z_head": (512, 512), "ac_layers": 4, "actions": 5},
+}
+ENV_SPECS = {  # must agree with pretrain_vae_gw.py (checked against the checkpoints)
+    "simple_shapes": {"image": 32, "attr": 11, "latent": 10, "z": 10, "gw_hidden": 64},
+    "robodesk": {"image": 64, "attr": 76, "latent": 40, "z": 76, "gw_hidden": 512},
+}
+PRETRAIN = "python pretrain_vae_gw.py --env {env}"
+
+
+# --------------------------------------------------------------------------------------------------
+# Frozen VAEs of pretrain_vae_gw.py (same layers, so the same weights load) and the trainable GW
+# --------------------------------------------------------------------------------------------------
+def conv_block(cin: int, cout: int, transpose: bool = False, stride: int = 2) -> nn.Sequential:
+    conv = (nn.ConvTranspose2d if transpose else nn.Conv2d)(
+        cin, cout, 4 if stride == 2 else 3, stride, 1, bias=False
+    )
+    return nn.Sequential(conv, nn.BatchNorm2d(cout), nn.ReLU())
+
+
+class VisualVAE(nn.Module):
+    """Appendix Tables VAE_v: conv encoder to the mean/log-variance of u_v, decoder back to an image."""
+
+    def __init__(self, image: int, latent: int, width: int = 1024):
+        super().__init__()
+        n_down = int(np.log2(image)) - 1
+        chans = [width // 2 ** (n_down - 1 - i) for i in range(n_down)]
+        layers, cin = [], 3
+        for c in chans:
+            layers.append(conv_block(cin, c))
+            cin = c
+        self.encoder = nn.Sequential(*layers, nn.Flatten())
+        self.q = nn.Linear(width * 4, 2 * latent)
+        n_up = int(np.log2(image // 8))
+        up = [width // 2 ** (i + 1) for i in range(n_up)] + [width // 2**n_up]
+        self.width = width
+        self.fc = nn.Linear(latent, 8 * 8 * width)
+        dec, cin = [], width
+        for i, c in enumerate(up):
+            dec.append(conv_block(cin, c, transpose=True, stride=2 if i < n_up else 1))
+            cin = c
+        self.decoder = nn.Sequential(*dec, nn.Conv2d(cin, 3, 3, 1, 1), nn.Sigmoid())
+
+    def encode_mean(self, x: torch.Tensor) -> torch.Tensor:
+        return self.q(self.encoder(x)).chunk(2, dim=-1)[0]
+
+    def decode(self, u: torch.Tensor) -> torch.Tensor:
+        return self.decoder(self.fc(u).view(-1, self.width, 8, 8))
+
+
+class AttrVAE(nn.Module):
+    """Appendix Tables VAE_attr (only the encoder's mean is used here)."""
+
+    def __init__(self, attr: int, latent: int, hidden: int, depth: int):
+        super().__init__()
+        enc, cin = [], attr
+        for _ in range(depth):
+            enc += [nn.Linear(cin, hidden), nn.ReLU()]
+            cin = hidden
+        self.encoder = nn.Sequential(
+            *enc, nn.Linear(hidden, latent), nn.ReLU(), nn.Linear(latent, 2 * latent)
+        )
+        dec, cin = [], latent
+        for _ in range(depth):
+            dec += [nn.Linear(cin, hidden), nn.ReLU()]
+            cin = hidden
+        self.decoder = nn.Sequential(*dec, nn.Linear(hidden, attr))
+
+    def encode_mean(self, a: torch.Tensor) -> torch.Tensor:
+        return self.encoder(a).chunk(2, dim=-1)[0]
+
+
+def mlp(cin: int, hidden: int, cout: int, depth: int) -> nn.Sequential:
+    layers = []
+    for _ in range(depth):
+        layers += [nn.Linear(cin, hidden), nn.ReLU()]
+        cin = hidden
+    return nn.Sequential(*layers, nn.Linear(hidden, cout))
+
+
+class GlobalWorkspace(nn.Module):
+    """Encoders e_v, e_attr and decoders d_v, d_attr (appendix Tables GW_SS / GW_Rob), here from random
+    weights and trained during the run (Algorithm 2)."""
+
+    def __init__(self, latent: int, z: int, hidden: int):
+        super().__init__()
+        self.e = nn.ModuleDict({"v": mlp(latent, hidden, z, 4), "attr": mlp(latent, hidden, z, 4)})
+        self.d = nn.ModuleDict({"v": mlp(z, hidden, latent, 4), "attr": mlp(z, hidden, latent, 4)})
+
+    def fuse(self, u_v, u_attr, alpha_v, alpha_attr) -> torch.Tensor:
+        """z = tanh(alpha_v e_v(u_v) + alpha_attr e_attr(u_attr)) (eq. of Figure 1); alphas are scalars or
+        per-sample (B, 1)."""
+        return torch.tanh(alpha_v * self.e["v"](u_v) + alpha_attr * self.e["attr"](u_attr))
+
+
+LOSS_PRESETS = {  # appendix Table "GW losses weights"
+    "gw": {"dcy": 1.0, "cy": 1.0, "tr": 1.0, "fusion": 1.0, "cont": 0.1},
+    "clip": {"dcy": 0.0, "cy": 0.0, "tr": 0.0, "fusion": 0.0, "cont": 1.0},
+}
+
+
+def gw_losses(gw: GlobalWorkspace, u_v, u_attr, alpha_fusion: torch.Tensor, temperature: float) -> dict:
+    """The terms of L_GW (eq. 1-3), each a mean over both modalities: demi-cycle (alpha_x = 1, decode x),
+    translation (alpha_x = 1, decode the other), cycle (translate and back), fusion (random alpha_v per
+    sample, decode both) and the CLIP-like contrastive loss on the pre-fusion encodings."""
+    u = {"v": u_v, "attr": u_attr}
+    other = {"v": "attr", "attr": "v"}
+    z_pre = {x: gw.e[x](u[x]) for x in u}
+    z_uni = {x: torch.tanh(z_pre[x]) for x in u}  # alpha_x = 1, the other 0
+    loss_dcy = sum(F.mse_loss(gw.d[x](z_uni[x]), u[x]) for x in u) / 2
+    loss_tr = sum(F.mse_loss(gw.d[other[x]](z_uni[x]), u[other[x]]) for x in u) / 2
+    loss_cy = (
+        sum(F.mse_loss(gw.d[x](torch.tanh(gw.e[other[x]](gw.d[other[x]](z_uni[x])))), u[x]) for x in u) / 2
+    )
+    z_fused = torch.tanh(alpha_fusion * z_pre["v"] + (1 - alpha_fusion) * z_pre["attr"])
+    loss_fusion = sum(F.mse_loss(gw.d[x](z_fused), u[x]) for x in u) / 2
+    zv, za = F.normalize(z_pre["v"], dim=-1), F.normalize(z_pre["attr"], dim=-1)
+    logits = zv @ za.T / temperature
+    target = torch.arange(len(zv), device=zv.device)
+    loss_cont = (F.cross_entropy(logits, target) + F.cross_entropy(logits.T, target)) / 2
+    return {"dcy": loss_dcy, "cy": loss_cy, "tr": loss_tr, "fusion": loss_fusion, "cont": loss_cont}
+
+
+def fusion_weights(batch: int, temperature: float, device) -> torch.Tensor:
+    """alpha_v per sample for L_fusion: softmax(U / T) over the two modalities, U uniform in [0, 1)."""
+    return torch.softmax(torch.rand(batch, 2, device=device) / temperature, dim=1)[:, :1]
+
+
+def gw_lr(update: int, args: Args) -> float:
+    """OneCycle learning rate of the GW (cosine up from start to max over the first 30% of the cycle,
+    down to end over the rest, as torch's OneCycleLR) held at the end rate once the cycle is over."""
+    warm = 0.3 * args.gw_cycle
+    if update >= args.gw_cycle:
+        return args.gw_lr_end
+    if update < warm:
+        lo, hi, frac = args.gw_lr_start, args.gw_lr_max, update / warm
+    else:
+        lo, hi, frac = args.gw_lr_max, args.gw_lr_end, (update - warm) / (args.gw_cycle - warm)
+    return hi + (lo - hi) * (1 + math.cos(math.pi * frac)) / 2
+
+
+def load_pretrained(path: Path, kind: str, env: str, stage: str) -> dict:
+    make = PRETRAIN.format(env=env) + f" --stages {stage}"
+    if not path.is_file():
+        raise FileNotFoundError(f"no {kind} checkpoint at {path}; make it with `{make}`")
+    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    if ckpt.get("kind") != kind:
+        raise ValueError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected {kind!r}")
+    if ckpt.get("env") != env:
+        raise ValueError(
+            f"{path} was made for env {ckpt.get('env')!r}, but this run is for env {env!r}; "
+            f"make a matching one with `{make}`"
+        )
+    return ckpt
+
+
+class FrozenVAEs(nn.Module):
+    """Observation -> frozen VAE means (u_v, u_attr) (Algorithm 2, "Encode the different observations
+    using the pre-trained VAEs"), and u_v -> image for the dream frames."""
+
+    def __init__(self, env: str, vae: dict):
+        """``vae``: the checkpoint of pretrain_vae_gw.py's vae stage (see ``load_vaes``)."""
+        super().__init__()
+        s = ENV_SPECS[env]
+        self.vae_v = VisualVAE(s["image"], s["latent"], vae["config"]["vae_width"])
+        depth, hidden = (2, 64) if env == "simple_shapes" else (4, 512)
+        self.vae_attr = AttrVAE(s["attr"], s["latent"], hidden, depth)
+        self.vae_v.load_state_dict(vae["vae_v"])
+        self.vae_attr.load_state_dict(vae["vae_attr"])
+        self.register_buffer("attr_mean", torch.as_tensor(vae["attr_mean"], dtype=torch.float32))
+        self.register_buffer("attr_std", torch.as_tensor(vae["attr_std"], dtype=torch.float32))
+        self.latent = s["latent"]
+        self.eval().requires_grad_(False)
+
+    @torch.no_grad()
+    def forward(self, obs: dict[str, np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]:
+        dev = self.attr_mean.device
+        image = torch.as_tensor(obs["image"], device=dev).permute(0, 3, 1, 2).float() / 255.0
+        attr = torch.as_tensor(obs["attr"], device=dev, dtype=torch.float32)
+        return self.vae_v.encode_mean(image), self.vae_attr.encode_mean(
+            (attr - self.attr_mean) / self.attr_std
+        )
+
+    @torch.no_grad()
+    def decode_image(self, u_v: torch.Tensor) -> torch.Tensor:
+        return self.vae_v.decode(u_v)
+
+
+def load_vaes(env: str, vae_path: Path) -> FrozenVAEs:
+    """The frozen VAEs from pretrain_vae_gw.py's checkpoint, checked against ``env``."""
+    vae = load_pretrained(vae_path, "vae", env, "collect vae")
+    try:
+        return FrozenVAEs(env, vae)
+    except RuntimeError as err:  # a state dict of other sizes
+        raise ValueError(f"{vae_path} does not fit the {env} networks: {err}") from err
+
+
+FUSION = {"none": (0.5, 0.5), "vision": (0.0, 1.0), "attr": (1.0, 0.0)}  # (alpha_v, alpha_attr)
+
+
+# --------------------------------------------------------------------------------------------------
+# Symlog and two-hot (DreamerV3): rewards and values as 255-bin distributions over symlog(y)
+# --------------------------------------------------------------------------------------------------
+def symlog(x: torch.Tensor) -> torch.Tensor:
+    return torch.sign(x) * torch.log1p(x.abs())
+
+
+def symexp(x: torch.Tensor) -> torch.Tensor:
+    return torch.sign(x) * torch.expm1(x.abs())
+
+
+class TwoHot(nn.Module):
+    """Bins evenly spaced on symlog values in [-20, 20]."""
+
+    def __init__(self, n_bins: int = 255, low: float = -20.0, high: float = 20.0):
+        super().__init__()
+        self.register_buffer("bins", torch.linspace(low, high, n_bins))
+
+    def encode(self, y: torch.Tensor) -> torch.Tensor:
+        """Targets y (...,) -> two-hot weights (..., n_bins) on the bins around symlog(y)."""
+        x = symlog(y).clamp(self.bins[0], self.bins[-1])
+        hi = torch.searchsorted(self.bins, x.contiguous(), right=True).clamp(1, len(self.bins) - 1)
+        lo = hi - 1
+        w_hi = (x - self.bins[lo]) / (self.bins[hi] - self.bins[lo])
+        out = torch.zeros(*x.shape, len(self.bins), device=x.device)
+        out.scatter_(-1, lo.unsqueeze(-1), (1 - w_hi).unsqueeze(-1))
+        out.scatter_add_(-1, hi.unsqueeze(-1), w_hi.unsqueeze(-1))
+        return out
+
+    def mean(self, logits: torch.Tensor) -> torch.Tensor:
+        """Expected value: symexp of the softmax-weighted bin."""
+        return symexp((logits.softmax(-1) * self.bins).sum(-1))
+
+    def loss(self, logits: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """Cross-entropy to the two-hot target of y, per element."""
+        return -(self.encode(y) * logits.log_softmax(-1)).sum(-1)
+
+
+# --------------------------------------------------------------------------------------------------
+# World model (appendix Tables GRU_archi, WM_heads_SS / WM_heads_Rob)
+# --------------------------------------------------------------------------------------------------
+class WorldModel(nn.Module):
+    """h_{t+1} = GRU(h_t, in([z_t, a_t])); z_{t+1} = tanh-head(h_{t+1}); reward and done heads read
+    [h_{t+1}, z_{t+1}] (the tables' inputs 74 = 64 + 10 and 1100 = 1024 + 76)."""
+
+    def __init__(self, env: str, z_dim: int, action_dim: int, reward_out: int):
+        super().__init__()
+        s = SIZES[env]
+        # A linear input layer brings [z, a] to the table's GRU input size (PAPER_NOTES).
+        self.inp = nn.Sequential(nn.Linear(z_dim + action_dim, s["gru_in"]), nn.ReLU())
+        self.gru = nn.GRUCell(s["gru_in"], s["gru_hidden"])
+        layers, cin = [], s["gru_hidden"]
+        for width in s["z_head"]:
+            layers += [nn.Linear(cin, width), nn.ReLU()]
+            cin = width
+        self.z_head = nn.Sequential(*layers, nn.Linear(cin, z_dim), nn.Tanh())
+        # The tables list three hidden layers of 256; their parameter counts would fit two.
+        self.reward_head = mlp(s["gru_hidden"] + z_dim, 256, reward_out, 3)
+        self.done_head = mlp(s["gru_hidden"] + z_dim, 256, 1, 3)
+        self.hidden = s["gru_hidden"]
+
+    def step(self, h: torch.Tensor, z: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
+        return self.gru(self.inp(torch.cat([z, a], -1)), h)
+
+    def heads(self, h_next: torch.Tensor):
+        z_next = self.z_head(h_next)
+        feat = torch.cat([h_next, z_next], -1)
+        return z_next, self.reward_head(feat), self.done_head(feat).squeeze(-1)
+
+
+class RewardDecoder:
+    """Reward head outputs -> reward, and the reward loss (two-hot or MSE on symlog)."""
+
+    def __init__(self, kind: str, twohot: TwoHot):
+        self.kind, self.twohot = kind, twohot
+
+    def value(self, out: torch.Tensor) -> torch.Tensor:
+        return self.twohot.mean(out) if self.kind == "twohot" else symexp(out.squeeze(-1))
+
+    def loss(self, out: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
+        if self.kind == "twohot":
+            return self.twohot.loss(out, r)
+        return (out.squeeze(-1) - symlog(r)) ** 2
+
+
+# --------------------------------------------------------------------------------------------------
+# Actor-critic (appendix Tables AC_SS / AC_Rob)
+# --------------------------------------------------------------------------------------------------
+class Actor(nn.Module):
+    """Discrete: categorical with 1% uniform mix (DreamerV3). Continuous: Gaussian with tanh mean and
+    std in [0.1, 1], the table's FC_{2x5}; samples are clipped to the action box."""
+
+    def __init__(self, hidden: int, n_actions: int, depth: int, discrete: bool, unimix: float = 0.01):
+        super().__init__()
+        self.discrete, self.n, self.unimix = discrete, n_actions, unimix
+        self.net = mlp(hidden, 512, n_actions if discrete else 2 * n_actions, depth)
+
+    def dist(self, h: torch.Tensor) -> torch.distributions.Distribution:
+        out = self.net(h)
+        if self.discrete:
+            probs = (1 - self.unimix) * out.softmax(-1) + self.unimix / self.n
+            return torch.distributions.Categorical(probs=probs)
+        mean, std = out.chunk(2, -1)
+        std = 0.9 * torch.sigmoid(std + 2.0) + 0.1
+        return torch.distributions.Independent(torch.distributions.Normal(torch.tanh(mean), std), 1)
+
+    def act(self, h: torch.Tensor, mode: bool = False) -> torch.Tensor:
+        """Action as the world model reads it: one-hot (discrete) or a vector in [-1, 1]."""
+        d = self.dist(h)
+        if self.discrete:
+            idx = d.probs.argmax(-1) if mode else d.sample()
+            return F.one_hot(idx, self.n).float()
+        return (d.mean if mode else d.sample()).clamp(-1, 1)
+
+    def log_prob(self, h: torch.Tensor, a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        d = self.dist(h)
+        return d.log_prob(a.argmax(-1) if self.discrete else a), d.entropy()
+
+
+class Critic(nn.Module):
+    def __init__(self, hidden: int, depth: int, n_bins: int = 255):
+        super().__init__()
+        self.net = mlp(hidden, 512, n_bins, depth)
+
+    def forward(self, h: torch.Tensor) -> torch.Tensor:
+        return self.net(h)
+
+
+# --------------------------------------------------------------------------------------------------
+# Replay buffer: one stream per environment of entries (u_v, u_attr, a_t, r_{t+1}, d_{t+1}, first, last)
+# --------------------------------------------------------------------------------------------------
+class Replay:
+    """The VAEs are frozen and the GW reads only their means, so each observation is stored as (u_v,
+    u_attr), computed once when it is collected: the same as re-encoding the stored images and
+    attributes at every update (Algorithm 2), and a 100,000-step buffer takes megabytes, not gigabytes.
+    The GW changes during the run, so z_t is computed from (u_v, u_attr) at every update.
+
+    An episode that ends adds one more entry holding its final observation (``last``); sequences are
+    read across episode boundaries and the world model restarts its state at ``first`` entries."""
+
+    def __init__(self, capacity: int, num_envs: int, latent: int, action_dim: int, seed: int):
+        self.cap = max(capacity // num_envs, 2)
+        self.n = num_envs
+        self.u_v = np.zeros((num_envs, self.cap, latent), np.float32)
+        self.u_attr = np.zeros((num_envs, self.cap, latent), np.float32)
+        self.a = np.zeros((num_envs, self.cap, action_dim), np.float32)
+        self.r = np.zeros((num_envs, self.cap), np.float32)
+        self.d = np.zeros((num_envs, self.cap), np.float32)
+        self.first = np.zeros((num_envs, self.cap), np.float32)
+        self.last = np.zeros((num_envs, self.cap), np.float32)
+        self.pos = np.zeros(num_envs, np.int64)  # next write index per stream
+        self.count = np.zeros(num_envs, np.int64)  # entries written per stream (not capped)
+        self.rng = np.random.default_rng(seed)
+
+    def add(self, env_idx, u_v, u_attr, a, r, d, first, last) -> None:
+        for j, i in enumerate(np.atleast_1d(env_idx)):
+            p = self.pos[i]
+            self.u_v[i, p], self.u_attr[i, p] = u_v[j], u_attr[j]
+            self.a[i, p], self.r[i, p], self.d[i, p] = a[j], r[j], d[j]
+            self.first[i, p], self.last[i, p] = first[j], last[j]
+            self.pos[i] = (p + 1) % self.cap
+            self.count[i] += 1
+
+    def __len__(self) -> int:
+        return int(np.minimum(self.count, self.cap).sum())
+
+    def ready(self, length: int) -> bool:
+        return bool(np.all(np.minimum(self.count, self.cap) >= length + 1))
+
+    def sample(self, batch: int, length: int) -> dict[str, np.ndarray]:
+        """``batch`` windows of ``length + 1`` consecutive entries (``length`` transitions)."""
+        envs_ = self.rng.integers(0, self.n, batch)
+        filled = np.minimum(self.count[envs_], self.cap)
+        oldest = np.where(self.count[envs_] > self.cap, self.pos[envs_], 0)
+        start = oldest + (self.rng.random(batch) * (filled - length)).astype(np.int64)
+        idx = (start[:, None] + np.arange(length + 1)[None]) % self.cap
+        rows = envs_[:, None]
+        return {k: getattr(self, k)[rows, idx] for k in ("u_v", "u_attr", "a", "r", "d", "first", "last")}
+
+    def sample_observations(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """``n`` stored observations (u_v, u_attr) drawn uniformly: the GW's training batch."""
+        envs_ = self.rng.integers(0, self.n, n)
+        idx = (self.rng.random(n) * np.minimum(self.count[envs_], self.cap)).astype(np.int64)
+        return self.u_v[envs_, idx], self.u_attr[envs_, idx]
+
+    _KEYS = ("u_v", "u_attr", "a", "r", "d", "first", "last", "pos", "count")
+
+    def state_dict(self) -> dict:
+        return {k: getattr(self, k) for k in self._KEYS} | {"rng": self.rng.bit_generator.state}
+
+    def load_state_dict(self, s: dict) -> None:
+        for k in self._KEYS:
+            setattr(self, k, s[k])
+        self.rng.bit_generator.state = s["rng"]
+
+
+# --------------------------------------------------------------------------------------------------
+# Losses
+# --------------------------------------------------------------------------------------------------
+def world_model_loss(wm, reward_dec, batch: dict[str, torch.Tensor], args: Args):
+    """L_WM = coef_z MSE(z_{t+1}) + coef_r L_r + coef_d BCE(d_{t+1}) on replayed sequences (Algorithm 1,
+    lines 8-10). Returns the loss, its terms and the GRU states h_t before each entry (imagination
+    starts). MSE is summed over the z dimensions, averaged over transitions."""
+    z, a, r, d = batch["z"], batch["a"], batch["r"], batch["d"]
+    first, last = batch["first"], batch["last"]
+    B, T1, _ = z.shape
+    h = torch.zeros(B, wm.hidden, device=z.device)
+    hs_before, hs_after = [], []
+    for t in range(T1 - 1):
+        h = h * (1 - first[:, t, None])  # a new episode starts from h = 0
+        hs_before.append(h)
+        h = wm.step(h, z[:, t], a[:, t])
+        hs_after.append(h)
+    h_before, h_next = torch.stack(hs_before, 1), torch.stack(hs_after, 1)  # (B, T, hidden)
+    z_hat, r_out, d_logit = wm.heads(h_next)
+    valid = 1 - last[:, :-1]  # no transition out of an episode's final observation
+    n = valid.sum().clamp(min=1)
+    loss_z = (((z_hat - z[:, 1:]) ** 2).sum(-1) * valid).sum() / n
+    loss_r = (reward_dec.loss(r_out, r[:, :-1]) * valid).sum() / n
+    loss_d = (F.binary_cross_entropy_with_logits(d_logit, d[:, :-1], reduction="none") * valid).sum() / n
+    loss = args.wm_z_coef * loss_z + args.wm_reward_coef * loss_r + args.wm_done_coef * loss_d
+    return loss, {"loss_z": loss_z, "loss_r": loss_r, "loss_d": loss_d}, h_before, valid
+
+
+def imagine(wm, actor, reward_dec, h0: torch.Tensor, z0: torch.Tensor, horizon: int):
+    """Dream ``horizon`` steps from replayed states (h_t, z_t): the real z_t is given only at the first
+    step, then the world model's own predictions (paper Figure 3 (2)). No gradient flows through the
+    world model or the sampled actions."""
+    with torch.no_grad():
+        hs, actions, rewards, conts = [h0], [], [], []
+        h, z = h0, z0
+        for _ in range(horizon):
+            a = actor.act(h)
+            h = wm.step(h, z, a)
+            z, r_out, d_logit = wm.heads(h)
+            hs.append(h)
+            actions.append(a)
+            rewards.append(reward_dec.value(r_out))
+            conts.append(1 - torch.sigmoid(d_logit))
+    return torch.stack(hs), torch.stack(actions), torch.stack(rewards), torch.stack(conts)
+
+
+def lambda_returns(rewards, conts, values, gamma: float, lam: float) -> torch.Tensor:
+    """R_k = r_{k+1} + gamma c_{k+1} ((1 - lam) v_{k+1} + lam R_{k+1}), R_H = v_H (DreamerV3)."""
+    out, last = [], values[-1]
+    for k in reversed(range(len(rewards))):
+        last = rewards[k] + gamma * conts[k] * ((1 - lam) * values[k + 1] + lam * last)
+        out.append(last)
+    return torch.stack(out[::-1])
+
+
+def actor_critic_loss(
+    actor, critic, slow_critic, twohot, hs, actions, rewards, conts, start_w, scale, n_updates, args
+):
+    """DreamerV3 actor-critic on an imagined rollout: REINFORCE with advantages normalised by the return
+    scale and an entropy bonus (the paper stops gradients at the world model, so no dynamics
+    backpropagation even for continuous actions); a two-hot critic on lambda-returns regularised toward
+    its slow copy. ``start_w`` masks starts that are an episode's final observation."""
+    logits = critic(hs)  # (H + 1, N, bins); one pass serves the bootstrap values and the critic loss
+    with torch.no_grad():
+        values = twohot.mean(logits.detach())
+        returns = lambda_returns(rewards, conts, values, args.gamma, args.lam)  # (H, N)
+        # Weight of dreamt state k: the predicted probability that the episode is still running.
+        w = torch.cumprod(torch.cat([torch.ones_like(conts[:1]), conts[:-1]]), 0) * start_w
+        lo, hi = torch.quantile(returns, torch.tensor([0.05, 0.95], device=returns.device))
+        scale = args.return_norm_decay * scale + (1 - args.return_norm_decay) * (hi - lo).item()
+        # Bias-corrected like Adam's moments: the EMA starts at 0, and dividing by its raw value over the
+        # first updates would blow the advantages up by up to 100x.
+        debiased = scale / (1 - args.return_norm_decay ** (n_updates + 1))
+        adv = (returns - values[:-1]) / max(1.0, debiased)
+        slow_target = twohot.mean(slow_critic(hs[:-1]))
+    logp, entropy = actor.log_prob(hs[:-1], actions)
+    loss_actor = -(w * (logp * adv + args.entropy_coef * entropy)).mean()
+    critic_nll = twohot.loss(logits[:-1], returns) + twohot.loss(logits[:-1], slow_target)
+    loss_critic = (w * critic_nll).mean()
+    stats = {"return_scale": debiased, "imag_return": returns.mean().item(), "entropy": entropy.mean().item()}
+    return loss_actor, loss_critic, scale, stats
+
+
+# --------------------------------------------------------------------------------------------------
+# Environments and evaluation
+# --------------------------------------------------------------------------------------------------
+def make_envs(args: Args, num_envs: int):
+    """Vector env with same-step autoreset (info["final_obs"] holds the last observation)."""
+    if args.env == "simple_shapes":
+        from envs.simple_shapes import SimpleShapesVectorEnv
+
+        return SimpleShapesVectorEnv(num_envs)
+    from envs.robodesk import TASKS
+
+    if args.task not in TASKS:
+        raise ValueError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
+    fns = [
+        lambda: gym.make(
+            "RoboDesk-v0",
+            task=args.task,
+            render_quality=args.render_quality,
+            episode_length=args.episode_length,
+        )
+        for _ in range(num_envs)
+    ]
+    return gym.vector.SyncVectorEnv(fns, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
+
+
+def final_observations(info: dict, ends: np.ndarray) -> dict[str, np.ndarray]:
+    """Last observations of the episodes that ended (same-step autoreset): the batched Simple Shapes env
+    gives a dict of arrays, gymnasium's SyncVectorEnv an array of per-env dicts."""
+    fo = info["final_obs"]
+    if isinstance(fo, dict):
+        return {k: v[ends] for k, v in fo.items()}
+    return {k: np.stack([fo[i][k] for i in ends]) for k in fo[ends[0]]}
+
+
+def step_success(info: dict, n: int) -> np.ndarray:
+    """RoboDesk's per-step success flag; for an env that just reset, the flag of its final step."""
+    if "success" not in info:
+        return np.zeros(n)
+    success = np.asarray(info["success"], float).copy()
+    for i in np.flatnonzero(info.get("_final_info", np.zeros(n, bool))):
+        success[i] = float(info["final_info"]["success"][i])
+    return success
+
+
+def action_for_env(a: torch.Tensor, discrete: bool) -> np.ndarray:
+    return a.argmax(-1).cpu().numpy() if discrete else a.cpu().numpy().astype(np.float32)
+
+
+class Agent(nn.Module):
+    """The trainable part of GW-Dreamer end to end: Global Workspace, world model, actor, critic (and the
+    slow critic)."""
+
+    def __init__(self, env: str, reward_loss: str):
+        super().__init__()
+        s, spec = SIZES[env], ENV_SPECS[env]
+        z_dim = spec["z"]
+        self.discrete = env == "simple_shapes"
+        self.gw = GlobalWorkspace(spec["latent"], z_dim, spec["gw_hidden"])
+        self.twohot = TwoHot()
+        self.wm = WorldModel(env, z_dim, s["actions"], 255 if reward_loss == "twohot" else 1)
+        self.actor = Actor(s["gru_hidden"], s["actions"], s["ac_layers"], self.discrete)
+        self.critic = Critic(s["gru_hidden"], s["ac_layers"])
+        self.slow_critic = copy.deepcopy(self.critic).requires_grad_(False)
+        self.reward_dec = RewardDecoder(reward_loss, self.twohot)
+
+    @torch.no_grad()
+    def z(self, u_v: torch.Tensor, u_attr: torch.Tensor, drop: str = "none") -> torch.Tensor:
+        """z_t of the current GW: alpha = 0.5/0.5, or (1, 0)/(0, 1) with the dropped modality zeroed. The
+        world model and actor-critic never send gradients into the GW; it learns from L_GW alone."""
+        alpha_v, alpha_attr = FUSION[drop]
+        if alpha_v == 0:
+            u_v = torch.zeros_like(u_v)
+        if alpha_attr == 0:
+            u_attr = torch.zeros_like(u_attr)
+        return self.gw.fuse(u_v, u_attr, alpha_v, alpha_attr)
+
+
+@torch.no_grad()
+def run_episodes(agent: Agent, vaes: FrozenVAEs, args: Args, n: int, drop: str, seed: int):
+    """n full episodes with fresh environments (seeds seed..seed+n-1); returns per-episode returns and
+    success counts (RoboDesk: steps in which the task's success criterion holds)."""
+    dev = vaes.attr_mean.device
+    envs_ = make_envs(args, n)
+    obs, _ = envs_.reset(seed=seed)
+    h = torch.zeros(n, agent.wm.hidden, device=dev)
+    returns, successes = np.zeros(n), np.zeros(n)
+    alive = np.ones(n, bool)
+    while alive.any():
+        z = agent.z(*vaes(obs), drop)
+        a = agent.actor.act(h)
+        obs, r, term, trunc, info = envs_.step(action_for_env(a, agent.discrete))
+        returns += r * alive
+        successes += step_success(info, n) * alive
+        alive &= ~(term | trunc)
+        h = agent.wm.step(h, z, a)
+    envs_.close()
+    return returns, successes
+
+
+@torch.no_grad()
+def dream_filmstrip(agent: Agent, vaes: FrozenVAEs, args: Args, steps: int, seed: int) -> np.ndarray:
+    """Real frames (top row) beside the world model's dream (bottom row) from the same start state and
+    actions: the dream sees the real z_0 only, then its own predictions, decoded through d_v and the
+    visual VAE decoder. Returns a uint8 (2 H, steps W, 3) image."""
+    dev = vaes.attr_mean.device
+    env = make_envs(args, 1)
+    obs, _ = env.reset(seed=seed)
+    h = torch.zeros(1, agent.wm.hidden, device=dev)
+    z_dream = agent.z(*vaes(obs))
+    h_dream = h.clone()
+    real, dream = [obs["image"][0]], [vaes.decode_image(agent.gw.d["v"](z_dream))]
+    for _ in range(steps - 1):
+        z = agent.z(*vaes(obs))
+        a = agent.actor.act(h, mode=True)
+        obs, _, term, trunc, info = env.step(action_for_env(a, agent.discrete))
+        h = agent.wm.step(h, z, a)
+        h_dream = agent.wm.step(h_dream, z_dream, a)
+        z_dream = agent.wm.heads(h_dream)[0]
+        ended = (term | trunc).any()
+        real.append(final_observations(info, np.array([0]))["image"][0] if ended else obs["image"][0])
+        dream.append(vaes.decode_image(agent.gw.d["v"](z_dream)))
+        if ended:
+            break
+    env.close()
+    dream_img = [(d[0].permute(1, 2, 0).cpu().numpy() * 255).round().astype(np.uint8) for d in dream]
+    return np.concatenate([np.concatenate(real, 1), np.concatenate(dream_img, 1)], 0)
+
+
+# --------------------------------------------------------------------------------------------------
+# Checkpoints
+# --------------------------------------------------------------------------------------------------
+def atomic_save(obj: dict, path: Path) -> None:
+    """Write to a temporary file then rename: an interruption never leaves a torn checkpoint."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def vae_fingerprint(vaes: FrozenVAEs) -> float:
+    """A number that changes with the frozen weights: a resumed or evaluated agent must use the VAEs it
+    was trained on (its GW is part of the agent checkpoint)."""
+    return float(sum(p.double().sum() for p in vaes.parameters()))
+
+
+def load_agent_checkpoint(path: Path, env: str, fingerprint: float) -> dict:
+    """An agent checkpoint of ``env`` trained on the frozen VAEs whose fingerprint is given."""
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"no agent checkpoint at {path}; train one with `python gw_dreamer_e2e.py --env {env}`"
+        )
+    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    if ckpt.get("kind") != "gw_dreamer_e2e":
+        raise ValueError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected a gw_dreamer_e2e agent")
+    if ckpt.get("env") != env:
+        raise ValueError(f"{path} is an agent for env {ckpt.get('env')!r}, but --env is {env!r}")
+    if abs(ckpt["vae_fingerprint"] - fingerprint) > 1e-6 * max(1.0, abs(fingerprint)):
+        raise ValueError(f"{path} was trained on other VAE weights ({ckpt['vae_checkpoint']})")
+    return ckpt
+
+
+def count_flops(fn):
+    """``fn()`` and the forward + backward FLOPs it took (torch.utils.flop_counter)."""
+    with FlopCounterMode(display=False) as counter:
+        out = fn()
+    return out, counter.get_total_flops()
+
+
+def updates_due(env_steps: int, args: Args) -> int:
+    """Training updates owed after ``env_steps`` environment steps.
+
+    The paper's "train ratio" (4 Simple Shapes, 2 RoboDesk) is read as environment steps per update:
+    Algorithm 1 collects n transitions then makes m updates, here m = 1 update per n = train_ratio steps,
+    i.e. 5,000 updates by the paper's 20,000-step criterion. DreamerV3's meaning (replayed steps per env
+    step) would give one update of 64 x 32 replayed steps per 512 env steps, 39 updates by 20,000 steps:
+    too few to train a world model and an actor-critic from scratch, so it cannot be the paper's."""
+    return int(max(env_steps - args.learning_starts, 0) / args.train_ratio)
+
+
+def gw_update(agent: Agent, opt, replay: Replay, args: Args, state: dict, dev) -> dict:
+    """One GW update on replayed observations: L_GW = sum_k beta_k L_k (eq. 1-3), AdamW at the OneCycle
+    rate of this update (Algorithm 2, lines 7-11)."""
+    u_v, u_attr = (torch.as_tensor(u, device=dev) for u in replay.sample_observations(args.gw_batch_size))
+    alpha = fusion_weights(len(u_v), args.fusion_temperature, dev)
+    terms = gw_losses(agent.gw, u_v, u_attr, alpha, args.contrastive_temperature)
+    betas = LOSS_PRESETS[args.loss_preset]
+    loss_gw = sum(betas[k] * terms[k] for k in terms)
+    if not torch.isfinite(loss_gw):
+        raise FloatingPointError(f"non-finite GW loss at env step {state['env_steps']:,}")
+    for group in opt.param_groups:
+        group["lr"] = gw_lr(state["gw_updates"], args)
+    opt.zero_grad(set_to_none=True)
+    loss_gw.backward()
+    opt.step()
+    state["gw_updates"] += 1
+    return {"loss_gw": loss_gw} | {f"loss_{k}": v for k, v in terms.items()}
+
+
+def train_update(agent: Agent, opts: dict, replay: Replay, args: Args, state: dict, dev) -> dict:
+    """One global training step: ``gw_updates`` GW updates, the world model on replayed sequences encoded
+    by the updated GW, then the actor-critic on rollouts dreamt from the replayed states (Algorithm 2)."""
+    gw_terms = {}  # --gw-updates 0 freezes the random GW (a check, not a paper variant)
+    for _ in range(args.gw_updates):
+        gw_terms = gw_update(agent, opts["gw"], replay, args, state, dev)
+    raw = replay.sample(args.batch_size, args.batch_length)
+    batch = {k: torch.as_tensor(v, device=dev) for k, v in raw.items()}
+    batch["z"] = agent.z(batch.pop("u_v"), batch.pop("u_attr"))  # current GW, alpha 0.5/0.5, no gradient
+    loss_wm, terms, h_before, valid = world_model_loss(agent.wm, agent.reward_dec, batch, args)
+    if not torch.isfinite(loss_wm):
+        raise FloatingPointError(f"non-finite world-model loss at env step {state['env_steps']:,}")
+    opts["wm"].zero_grad(set_to_none=True)
+    loss_wm.backward()
+    nn.utils.clip_grad_norm_(agent.wm.parameters(), 1000.0)
+    opts["wm"].step()
+    # Imagination starts: every replayed (h_t, z_t), or a random subset of them (--imag-starts).
+    h0 = h_before.detach().reshape(-1, agent.wm.hidden)
+    z0 = batch["z"][:, :-1].reshape(len(h0), -1)
+    start_w = (1 - batch["last"][:, :-1]).reshape(-1)
+    if args.imag_starts and args.imag_starts < len(h0):
+        pick = torch.randperm(len(h0), device=dev)[: args.imag_starts]
+        h0, z0, start_w = h0[pick], z0[pick], start_w[pick]
+    hs, acts, rews, conts = imagine(agent.wm, agent.actor, agent.reward_dec, h0, z0, args.imag_horizon)
+    loss_actor, loss_critic, state["return_scale"], stats = actor_critic_loss(
+        agent.actor, agent.critic, agent.slow_critic, agent.twohot, hs, acts, rews, conts,
+        start_w, state["return_scale"], state["updates"], args,
+    )  # fmt: skip
+    if not (torch.isfinite(loss_actor) and torch.isfinite(loss_critic)):
+        raise FloatingPointError(f"non-finite actor-critic loss at env step {state['env_steps']:,}")
+    opts["actor"].zero_grad(set_to_none=True)
+    opts["critic"].zero_grad(set_to_none=True)
+    (loss_actor + loss_critic).backward()
+    nn.utils.clip_grad_norm_(agent.actor.parameters(), 100.0)
+    nn.utils.clip_grad_norm_(agent.critic.parameters(), 100.0)
+    opts["actor"].step()
+    opts["critic"].step()
+    with torch.no_grad():  # slow critic: EMA of the critic (DreamerV3)
+        for p_slow, p in zip(agent.slow_critic.parameters(), agent.critic.parameters(), strict=True):
+            p_slow.lerp_(p, 1 - args.slow_critic_decay)
+    out = {"loss_wm": loss_wm, **terms, "loss_actor": loss_actor, "loss_critic": loss_critic, **gw_terms}
+    return {k: v.item() for k, v in out.items()} | stats | {"gw_lr": opts["gw"].param_groups[0]["lr"]}
+
+
+def make_optimizers(agent: Agent, args: Args) -> dict:
+    """AdamW for the GW (its learning rate is set by ``gw_lr`` before each update), Adam for the others
+    (appendix Tables "GW-Dreamer training" and "GW training in GW-Dreamer End-to-End"; eps as DreamerV3)."""
+    return {
+        "gw": torch.optim.AdamW(
+            agent.gw.parameters(), lr=args.gw_lr_start, weight_decay=args.gw_weight_decay
+        ),
+        "wm": torch.optim.Adam(agent.wm.parameters(), lr=args.wm_lr, eps=1e-8),
+        "actor": torch.optim.Adam(agent.actor.parameters(), lr=args.ac_lr, eps=1e-5),
+        "critic": torch.optim.Adam(agent.critic.parameters(), lr=args.ac_lr, eps=1e-5),
+    }
+
+
+# --------------------------------------------------------------------------------------------------
+# Training loop (Algorithm 1)
+# --------------------------------------------------------------------------------------------------
+def main(args: Args) -> dict:
+    args.resolve()
+    if args.torch_threads:
+        torch.set_num_threads(args.torch_threads)
+    dev = torch.device(args.device)
+    ck_root = Path(args.checkpoint_dir) / args.env
+    vae_path = Path(args.vae_checkpoint) if args.vae_checkpoint else ck_root / "vae.pt"
+    if args.env == "robodesk":
+        from envs.robodesk import TASKS
+
+        if args.task not in TASKS:
+            raise ValueError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
+    vaes = load_vaes(args.env, vae_path).to(dev)
+    model_name = "gw" if args.loss_preset == "gw" else "clip"  # GW-Dreamer or CLIP-Dreamer, end to end
+    task = "" if args.env == "simple_shapes" else f"_{args.task}"
+    run_name = f"{args.exp_name}_{model_name}_{args.env}{task}_s{args.seed}"
+    agent_path = Path(args.checkpoint) if args.checkpoint else ck_root / "agents" / f"{run_name}.pt"
+    fingerprint = vae_fingerprint(vaes)
+
+    random.seed(args.seed)
+    np.random.seed(args.seed)
+    torch.manual_seed(args.seed)
+    agent = Agent(args.env, args.reward_loss).to(dev)
+    discrete = agent.discrete
+    ref = ss_reference_returns() if args.env == "simple_shapes" else None
+
+    def normalise(ret: float) -> float:
+        return (ret - ref[0]) / (ref[1] - ref[0]) if ref else float("nan")
+
+    if args.eval_only:
+        ck = load_agent_checkpoint(agent_path, args.env, fingerprint)
+        agent.load_state_dict(ck["agent"])
+        rets, succ = run_episodes(agent, vaes, args, args.eval_episodes, args.drop, seed=args.seed + 10**6)
+        sem = rets.std(ddof=1) / math.sqrt(len(rets)) if len(rets) > 1 else 0.0
+        out = {"drop": args.drop, "return_mean": float(rets.mean()), "return_sem": float(sem)}
+        line = f"[eval] drop={args.drop}: return {rets.mean():.2f} ± {sem:.2f} (s.e.m., {len(rets)} episodes)"
+        if ref:
+            out["normalised_return"] = normalise(float(rets.mean()))
+            line += f", normalised {out['normalised_return']:.3f}"
+        if args.env == "robodesk":
+            out["success_count"] = float(succ.mean())
+            line += f", success count {succ.mean():.1f} ± {succ.std(ddof=1) / math.sqrt(len(succ)):.1f}"
+        print(line)
+        return out
+
+    opts = make_optimizers(agent, args)
+    action_dim = SIZES[args.env]["actions"]
+    replay = Replay(args.buffer_size, args.num_envs, vaes.latent, action_dim, args.seed)
+    state = {
+        "env_steps": 0,
+        "updates": 0,
+        "gw_updates": 0,
+        "flops": 0,
+        "flops_per_update": 0,
+        "return_scale": 0.0,
+        "episodes": 0,
+        "criterion_step": None,
+        "recent": [],
+        "next_eval": args.eval_every,
+        "next_save": args.save_every,
+        "next_video": args.video_every or args.total_steps,
+    }
+    if args.resume:
+        ck = load_agent_checkpoint(agent_path, args.env, fingerprint)
+        agent.load_state_dict(ck["agent"])
+        for name, opt in opts.items():
+            opt.load_state_dict(ck["opts"][name])
+        replay.load_state_dict(ck["replay"])
+        state.update(ck["state"])
+        torch.set_rng_state(ck["torch_rng"])
+        np.random.set_state(ck["np_rng"])
+        print(f"[gw_dreamer_e2e] resuming {agent_path} at env step {state['env_steps']:,}")
+
+    writer = SummaryWriter(f"runs/{run_name}")
+    if not args.resume:
+        writer.add_text(
+            "hyperparameters",
+            "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in vars(args).items()),
+        )
+    parts = ("gw", "wm", "actor", "critic")
+    n_params = {k: sum(p.numel() for p in getattr(agent, k).parameters()) for k in parts}
+    frozen = sum(p.numel() for p in vaes.parameters())
+    print(
+        f"[gw_dreamer_e2e] {model_name.upper()}-Dreamer end to end on {args.env}{task}: "
+        f"GW {n_params['gw']:,}, world model {n_params['wm']:,}, actor {n_params['actor']:,}, "
+        f"critic {n_params['critic']:,} parameters (+ {frozen:,} frozen VAE)"
+    )
+    if ref:
+        print(
+            f"[gw_dreamer_e2e] normalised return: random policy {ref[0]:.1f} -> 0, "
+            f"greedy policy {ref[1]:.1f} -> 1"
+        )
+
+    def save(path: Path) -> None:
+        atomic_save(
+            {
+                "kind": "gw_dreamer_e2e",
+                "env": args.env,
+                "task": args.task,
+                "model": model_name,
+                "args": asdict(args),
+                "vae_checkpoint": str(vae_path),
+                "vae_fingerprint": fingerprint,
+                "agent": agent.state_dict(),
+                "opts": {name: opt.state_dict() for name, opt in opts.items()},
+                "replay": replay.state_dict(),
+                "state": state,
+                "torch_rng": torch.get_rng_state(),
+                "np_rng": np.random.get_state(),
+            },
+            path,
+        )
+
+    def log_episode(ret: float, success: float) -> None:
+        state["episodes"] += 1
+        step = state["env_steps"]
+        writer.add_scalar("charts/episodic_return", ret, step)
+        if args.env == "robodesk":
+            writer.add_scalar("charts/success_count", success, step)
+            return
+        state["recent"] = (state["recent"] + [normalise(ret)])[-args.smoothing :]
+        smooth = float(np.mean(state["recent"]))
+        writer.add_scalar("charts/normalised_return", normalise(ret), step)
+        writer.add_scalar("charts/smoothed_normalised_return", smooth, step)
+        if (
+            state["criterion_step"] is None
+            and len(state["recent"]) == args.smoothing
+            and smooth >= args.criterion
+        ):
+            state["criterion_step"] = step
+            writer.add_scalar("charts/criterion_step", step, step)
+            print(f"[gw_dreamer_e2e] return criterion ({args.criterion}) reached at env step {step:,}")
+
+    # ------------------------------------------------------------------------------------------
+    envs_ = make_envs(args, args.num_envs)
+    obs, _ = envs_.reset(seed=args.seed + state["env_steps"])
+    h = torch.zeros(args.num_envs, agent.wm.hidden, device=dev)
+    first = np.ones(args.num_envs, np.float32)
+    ep_ret, ep_succ = np.zeros(args.num_envs), np.zeros(args.num_envs)
+    rng = np.random.default_rng(args.seed + state["env_steps"])
+    t0, steps0, last_log = time.time(), state["env_steps"], {}
+    while state["env_steps"] < args.total_steps:
+        # Collect: act with the current policy (uniformly random before learning starts).
+        with torch.no_grad():
+            u_v, u_attr = vaes(obs)
+            z = agent.z(u_v, u_attr)  # the GW as it is now
+            if state["env_steps"] < args.learning_starts:
+                if discrete:
+                    a = F.one_hot(torch.as_tensor(rng.integers(0, action_dim, args.num_envs)), action_dim)
+                else:
+                    a = torch.as_tensor(rng.uniform(-1, 1, (args.num_envs, action_dim)))
+                a = a.float().to(dev)
+            else:
+                a = agent.actor.act(h)
+            h = agent.wm.step(h, z, a)
+        obs, r, term, trunc, info = envs_.step(action_for_env(a, discrete))
+        done = term | trunc
+        idx = np.arange(args.num_envs)
+        replay.add(
+            idx, u_v.cpu().numpy(), u_attr.cpu().numpy(), a.cpu().numpy(), r, term, first, np.zeros(len(idx))
+        )
+        first = np.zeros(args.num_envs, np.float32)
+        ep_ret += r
+        ep_succ += step_success(info, args.num_envs)
+        state["env_steps"] += args.num_envs
+        if done.any():
+            ends = np.flatnonzero(done)
+            u_v_final, u_attr_final = (u.cpu().numpy() for u in vaes(final_observations(info, ends)))
+            zeros = np.zeros(len(ends))
+            no_action = np.zeros((len(ends), action_dim))
+            replay.add(ends, u_v_final, u_attr_final, no_action, zeros, zeros, zeros, np.ones(len(ends)))
+            for i in ends:
+                log_episode(float(ep_ret[i]), float(ep_succ[i]))
+            ep_ret[ends], ep_succ[ends], first[ends] = 0.0, 0.0, 1.0
+            h[torch.as_tensor(ends, device=dev)] = 0.0
+
+        # Train: the updates owed by the train ratio, once the buffer holds a full batch sequence.
+        while state["updates"] < updates_due(state["env_steps"], args) and replay.ready(args.batch_length):
+            try:
+                if state["flops_per_update"] == 0:  # same shapes every update: count the first one
+                    last_log, state["flops_per_update"] = count_flops(
+                        lambda: train_update(agent, opts, replay, args, state, dev)
+                    )
+                else:
+                    last_log = train_update(agent, opts, replay, args, state, dev)
+            except FloatingPointError as err:
+                raise FloatingPointError(f"{err}; the last good checkpoint is {agent_path}") from err
+            state["updates"] += 1
+            state["flops"] += state["flops_per_update"]
+
+        step = state["env_steps"]
+        if step % args.log_every < args.num_envs and last_log:
+            sps = (step - steps0) / max(time.time() - t0, 1e-9)
+            for k, v in last_log.items():
+                writer.add_scalar(f"charts/{k}" if k == "gw_lr" else f"losses/{k}", v, step)
+            writer.add_scalar("charts/SPS", sps, step)
+            writer.add_scalar("charts/updates", state["updates"], step)
+            writer.add_scalar("charts/train_flops", state["flops"], step)
+            smooth = np.mean(state["recent"]) if state["recent"] else float("nan")
+            eta = (args.total_steps - step) / max(sps, 1e-9) / 60
+            print(
+                f"[gw_dreamer_e2e] step {step:,}/{args.total_steps:,} updates {state['updates']:,} "
+                f"{sps:.1f} steps/s ETA {eta:.1f} min | wm {last_log['loss_wm']:.3f} "
+                f"(z {last_log['loss_z']:.3f} r {last_log['loss_r']:.3f} d {last_log['loss_d']:.3f}) "
+                f"gw {last_log.get('loss_gw', math.nan):.3f} "
+                f"smoothed normalised return {smooth:.3f}",
+                flush=True,
+            )
+        if step >= state["next_eval"]:
+            state["next_eval"] += args.eval_every
+            rets, succ = run_episodes(agent, vaes, args, args.eval_episodes, "none", seed=10**6 + step)
+            writer.add_scalar("eval/episodic_return", rets.mean(), step)
+            if ref:
+                writer.add_scalar("eval/normalised_return", normalise(float(rets.mean())), step)
+            if args.env == "robodesk":
+                writer.add_scalar("eval/success_count", succ.mean(), step)
+        if step >= state["next_video"]:
+            state["next_video"] += args.video_every or args.total_steps
+            strip = dream_filmstrip(agent, vaes, args, 16, seed=10**6)
+            writer.add_image("dreams/real_top_imagined_bottom", strip, step, dataformats="HWC")
+        if step >= state["next_save"]:
+            state["next_save"] += args.save_every
+            save(agent_path)
+
+    envs_.close()
+    rets, succ = run_episodes(agent, vaes, args, args.eval_episodes, "none", seed=10**6 + 1)
+    strip = dream_filmstrip(agent, vaes, args, 16, seed=10**6)
+    writer.add_image("dreams/real_top_imagined_bottom", strip, state["env_steps"], dataformats="HWC")
+    save(agent_path)
+    writer.close()
+    wall = time.time() - t0
+    result = {
+        "env_steps": state["env_steps"],
+        "updates": state["updates"],
+        "train_flops": state["flops"],
+        "criterion_step": state["criterion_step"],
+        "final_return": float(rets.mean()),
+        "wall_s": wall,
+    }
+    if ref:
+        result["final_normalised_return"] = normalise(float(rets.mean()))
+    if args.env == "robodesk":
+        result["final_success_count"] = float(succ.mean())
+    print(f"[gw_dreamer_e2e] done: {result}; agent checkpoint {agent_path}")
+    return result
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))

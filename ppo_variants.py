@@ -1,0 +1,835 @@
+"""PPO, VAE-PPO, CLIP-PPO and GW-PPO: the model-free baselines of the paper, in one CleanRL-style file.
+
+Paper: section "Results / Comparison with baselines" (the paper trained them with stable-baselines3; this
+is our own PPO, with the settings of the group's GW-PPO on Simple Shapes, PAPER_NOTES).
+
+    python pretrain_vae_gw.py --env simple_shapes --cpu-preset      # VAEs + GW (for vae / gw)
+    python pretrain_vae_gw.py --env simple_shapes --stages gw --loss-preset clip --cpu-preset   # clip
+    python ppo_variants.py --env simple_shapes --variant gw         # GW-PPO
+    python ppo_variants.py --env simple_shapes --variant raw        # multimodal PPO on raw observations
+    python ppo_variants.py --env simple_shapes --variant gw --eval-only --drop vision \\
+        --checkpoint checkpoints/simple_shapes/agents/ppo_gw_simple_shapes_s1.pt
+
+Inputs per variant (4 stacked frames each):
+- raw: the image (CNN) and the attribute vector together;
+- vae: the concatenated frozen VAE means [u_v, u_attr];
+- clip / gw: the single fused representation z = tanh(0.5 e_v(u_v) + 0.5 e_attr(u_attr)) of the frozen
+  CLIP-like / GW model.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import random
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Literal
+
+import gymnasium as gym
+import numpy as np
+import torch
+import torch.nn as nn
+import tyro
+from torch.utils.flop_counter import FlopCounterMode
+from torch.utils.tensorboard import SummaryWriter
+
+import envs  # noqa: F401  (registers the environments)
+from envs.simple_shapes import reference_returns as ss_reference_returns
+
+
+@dataclass
+class Args:
+    env: Literal["simple_shapes", "robodesk"] = "simple_shapes"
+    """environment"""
+    task: str = "push_green"
+    """RoboDesk task (ignored for Simple Shapes)"""
+    variant: Literal["raw", "vae", "clip", "gw"] = "gw"
+    """raw: PPO on image + attributes; vae: VAE-PPO; clip: CLIP-PPO; gw: GW-PPO"""
+    seed: int = 1
+    """seed of the environments, the networks and the minibatches"""
+    exp_name: str = "ppo"
+    """run name prefix: runs/<exp_name>_<variant>_<env>[_<task>]_s<seed>"""
+    device: str = "cuda" if torch.cuda.is_available() else "cpu"
+    """torch device"""
+    torch_threads: int = 0
+    """torch CPU threads (0: torch's default)"""
+
+    # frozen representations (pretrain_vae_gw.py), for vae / clip / gw
+    checkpoint_dir: str = "checkpoints"
+    """where pretrain_vae_gw.py wrote <env>/{vae,gw,clip}.pt; agent checkpoints go to <env>/agents/"""
+    vae_checkpoint: str | None = None
+    """VAE checkpoint (default <checkpoint_dir>/<env>/vae.pt)"""
+    gw_checkpoint: str | None = None
+    """GW or CLIP-like checkpoint (default <checkpoint_dir>/<env>/gw.pt for gw, clip.pt for clip)"""
+
+    # PPO (the group's GW-PPO settings on Simple Shapes, PAPER_NOTES; CleanRL's algorithm)
+    total_steps: int = 1_000_000
+    """environment steps"""
+    num_envs: int = 2
+    """parallel environments"""
+    num_steps: int = 8_192
+    """steps per environment per rollout (2 x 8,192 = 16,384 per rollout)"""
+    update_epochs: int = 15
+    """passes over each rollout"""
+    minibatch_size: int = 512
+    """transitions per gradient step"""
+    learning_rate: float = 3e-4
+    """Adam learning rate (annealed linearly to 0 with --anneal-lr)"""
+    anneal_lr: bool = True
+    """anneal the learning rate linearly to 0 over the run (CleanRL)"""
+    gamma: float = 0.9
+    """discount"""
+    gae_lambda: float = 0.95
+    """lambda of generalised advantage estimation"""
+    clip_coef: float = 0.2
+    """surrogate clipping coefficient"""
+    clip_vloss: bool = True
+    """clip the value loss around the rollout's values (CleanRL)"""
+    norm_adv: bool = True
+    """normalise advantages per minibatch"""
+    ent_coef: float = 0.0
+    """entropy coefficient"""
+    vf_coef: float = 0.5
+    """value-loss coefficient"""
+    max_grad_norm: float = 0.5
+    """global gradient-norm clip"""
+    target_kl: float | None = None
+    """stop an update's epochs early when the approximate KL exceeds this (None: never)"""
+    norm_reward: bool = True
+    """divide rewards by a running std of the discounted return (stable-baselines3's VecNormalize,
+    CleanRL's NormalizeReward): Simple Shapes rewards of -5 to -40 per step give values near -250 that a
+    64-unit critic fits slowly; measured: 0.68 normalised return after 20,480 steps with it, 0.15
+    without (README)"""
+    frame_stack: int = 4
+    """observations stacked as the policy input"""
+    hidden: int = 64
+    """width of the two hidden layers of the actor and the critic (stable-baselines3's default)"""
+
+    # environments
+    render_quality: Literal["faithful", "fast"] = "faithful"
+    """RoboDesk image quality (fast: CPU experiments only, see the README)"""
+    episode_length: int = 2000
+    """RoboDesk episode length in physics-control repeats (paper: 2000, i.e. 500 agent steps)"""
+
+    # evaluation, logging, checkpoints
+    criterion: float = 0.75
+    """normalised return that defines the return criterion (Simple Shapes)"""
+    smoothing: int = 10
+    """training episodes in the sliding window of the smoothed return (paper: 10)"""
+    eval_episodes: int = 10
+    """episodes for --eval-only and the final evaluation"""
+    save_every: int = 1
+    """rollouts between resumable checkpoints"""
+    resume: bool = False
+    """continue the run stored at --checkpoint (default: this run's agent checkpoint)"""
+    checkpoint: str | None = None
+    """agent checkpoint (default <checkpoint_dir>/<env>/agents/<run name>.pt)"""
+    eval_only: bool = False
+    """only evaluate --checkpoint (the modality ablation with --drop) and exit"""
+    drop: Literal["none", "vision", "attr"] = "none"
+    """modality removed at evaluation: clip/gw set alpha to (0, 1) / (1, 0), raw/vae zero the input"""
+
+    def check(self) -> Args:
+        if self.num_envs * self.num_steps < self.minibatch_size:
+            raise ValueError(
+                f"a rollout of {self.num_envs} x {self.num_steps} steps is smaller than one minibatch "
+                f"({self.minibatch_size})"
+            )
+        return self
+
+
+PRETRAIN = "python pretrain_vae_gw.py --env {env}"
+ENV_SPECS = {  # must agree with pretrain_vae_gw.py (checked against the checkpoints)
+    "simple_shapes": {"image": 32, "attr": 11, "latent": 10, "z": 10, "gw_hidden": 64},
+    "robodesk": {"image": 64, "attr": 76, "latent": 40, "z": 76, "gw_hidden": 512},
+}
+FUSION = {"none": (0.5, 0.5), "vision": (0.0, 1.0), "attr": (1.0, 0.0)}  # (alpha_v, alpha_attr)
+
+
+# --------------------------------------------------------------------------------------------------
+# Frozen representations: the VAEs and the GW of pretrain_vae_gw.py (same layers, so the same weights load)
+# --------------------------------------------------------------------------------------------------
+def conv_block(cin: int, cout: int, transpose: bool = False, stride: int = 2) -> nn.Sequential:
+    conv = (nn.ConvTranspose2d if transpose else nn.Conv2d)(
+        cin, cout, 4 if stride == 2 else 3, stride, 1, bias=False
+    )
+    return nn.Sequential(conv, nn.BatchNorm2d(cout), nn.ReLU())
+
+
+class VisualVAE(nn.Module):
+    """Appendix Tables VAE_v: conv encoder to the mean/log-variance of u_v (the decoder is kept so the
+    checkpoint loads; PPO only encodes)."""
+
+    def __init__(self, image: int, latent: int, width: int = 1024):
+        super().__init__()
+        n_down = int(np.log2(image)) - 1
+        chans = [width // 2 ** (n_down - 1 - i) for i in range(n_down)]
+        layers, cin = [], 3
+        for c in chans:
+            layers.append(conv_block(cin, c))
+            cin = c
+        self.encoder = nn.Sequential(*layers, nn.Flatten())
+        self.q = nn.Linear(width * 4, 2 * latent)
+        n_up = int(np.log2(image // 8))
+        up = [width // 2 ** (i + 1) for i in range(n_up)] + [width // 2**n_up]
+        self.fc = nn.Linear(latent, 8 * 8 * width)
+        dec, cin = [], width
+        for i, c in enumerate(up):
+            dec.append(conv_block(cin, c, transpose=True, stride=2 if i < n_up else 1))
+            cin = c
+        self.decoder = nn.Sequential(*dec, nn.Conv2d(cin, 3, 3, 1, 1), nn.Sigmoid())
+
+    def encode_mean(self, x: torch.Tensor) -> torch.Tensor:
+        return self.q(self.encoder(x)).chunk(2, dim=-1)[0]
+
+
+class AttrVAE(nn.Module):
+    """Appendix Tables VAE_attr (only the encoder's mean is used here)."""
+
+    def __init__(self, attr: int, latent: int, hidden: int, depth: int):
+        super().__init__()
+        enc, cin = [], attr
+        for _ in range(depth):
+            enc += [nn.Linear(cin, hidden), nn.ReLU()]
+            cin = hidden
+        self.encoder = nn.Sequential(
+            *enc, nn.Linear(hidden, latent), nn.ReLU(), nn.Linear(latent, 2 * latent)
+        )
+        dec, cin = [], latent
+        for _ in range(depth):
+            dec += [nn.Linear(cin, hidden), nn.ReLU()]
+            cin = hidden
+        self.decoder = nn.Sequential(*dec, nn.Linear(hidden, attr))
+
+    def encode_mean(self, a: torch.Tensor) -> torch.Tensor:
+        return self.encoder(a).chunk(2, dim=-1)[0]
+
+
+def mlp(cin: int, hidden: int, cout: int, depth: int, act=nn.ReLU) -> nn.Sequential:
+    layers = []
+    for _ in range(depth):
+        layers += [nn.Linear(cin, hidden), act()]
+        cin = hidden
+    return nn.Sequential(*layers, nn.Linear(hidden, cout))
+
+
+class GlobalWorkspace(nn.Module):
+    """Encoders e_v, e_attr and decoders d_v, d_attr (appendix Tables GW_SS / GW_Rob)."""
+
+    def __init__(self, latent: int, z: int, hidden: int):
+        super().__init__()
+        self.e = nn.ModuleDict({"v": mlp(latent, hidden, z, 4), "attr": mlp(latent, hidden, z, 4)})
+        self.d = nn.ModuleDict({"v": mlp(z, hidden, latent, 4), "attr": mlp(z, hidden, latent, 4)})
+
+    def fuse(self, u_v, u_attr, alpha_v: float, alpha_attr: float) -> torch.Tensor:
+        """z = tanh(alpha_v e_v(u_v) + alpha_attr e_attr(u_attr)) (eq. of Figure 1)."""
+        return torch.tanh(alpha_v * self.e["v"](u_v) + alpha_attr * self.e["attr"](u_attr))
+
+
+def load_pretrained(path: Path, kind: str, env: str, stage: str, extra: str = "") -> dict:
+    make = PRETRAIN.format(env=env) + f" --stages {stage}{extra}"
+    if not path.is_file():
+        raise FileNotFoundError(f"no {kind} checkpoint at {path}; make it with `{make}`")
+    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    if ckpt.get("kind") != kind:
+        raise ValueError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected {kind!r}")
+    if ckpt.get("env") != env:
+        raise ValueError(
+            f"{path} was made for env {ckpt.get('env')!r}, but this run is for env {env!r}; "
+            f"make a matching one with `{make}`"
+        )
+    return ckpt
+
+
+class Observer(nn.Module):
+    """Observation dict -> the variant's policy input for one frame, with a modality optionally removed.
+
+    raw: {"image": uint8 (n, 3, H, W), "attr": (n, A)}; vae: {"x": [u_v, u_attr]};
+    clip / gw: {"x": z} with (alpha_v, alpha_attr) = (0.5, 0.5), or (1, 0) / (0, 1) without a modality."""
+
+    def __init__(self, env: str, variant: str, vae: dict | None, gw: dict | None):
+        super().__init__()
+        s = ENV_SPECS[env]
+        self.variant = variant
+        self.image_shape = (3, s["image"], s["image"])
+        self.attr_dim = s["attr"]
+        self.feat_dim = {"raw": 0, "vae": 2 * s["latent"], "clip": s["z"], "gw": s["z"]}[variant]
+        if variant == "raw":
+            return
+        self.vae_v = VisualVAE(s["image"], s["latent"], vae["config"]["vae_width"])
+        depth, hidden = (2, 64) if env == "simple_shapes" else (4, 512)
+        self.vae_attr = AttrVAE(s["attr"], s["latent"], hidden, depth)
+        self.vae_v.load_state_dict(vae["vae_v"])
+        self.vae_attr.load_state_dict(vae["vae_attr"])
+        self.register_buffer("attr_mean", torch.as_tensor(vae["attr_mean"], dtype=torch.float32))
+        self.register_buffer("attr_std", torch.as_tensor(vae["attr_std"], dtype=torch.float32))
+        if variant in ("clip", "gw"):
+            self.gw = GlobalWorkspace(s["latent"], s["z"], s["gw_hidden"])
+            self.gw.load_state_dict(gw["gw"])
+        self.eval().requires_grad_(False)
+
+    @torch.no_grad()
+    def forward(self, obs: dict[str, np.ndarray], drop: str, dev) -> dict[str, torch.Tensor]:
+        image = torch.as_tensor(obs["image"], device=dev).permute(0, 3, 1, 2)
+        attr = torch.as_tensor(obs["attr"], device=dev, dtype=torch.float32)
+        if self.variant == "raw":  # uint8 images keep the rollout small; zeros for a removed modality
+            return {
+                "image": image * 0 if drop == "vision" else image,
+                "attr": attr * 0 if drop == "attr" else attr,
+            }
+        u_v = self.vae_v.encode_mean(image.float() / 255.0)
+        u_attr = self.vae_attr.encode_mean((attr - self.attr_mean) / self.attr_std)
+        if self.variant == "vae":
+            u_v = u_v * 0 if drop == "vision" else u_v
+            u_attr = u_attr * 0 if drop == "attr" else u_attr
+            return {"x": torch.cat([u_v, u_attr], -1)}
+        alpha_v, alpha_attr = FUSION[drop]
+        return {"x": self.gw.fuse(u_v * (alpha_v > 0), u_attr * (alpha_attr > 0), alpha_v, alpha_attr)}
+
+
+def load_observer(args: Args) -> tuple[Observer, dict]:
+    """The frozen part of the variant, and the paths/fingerprint that tie an agent checkpoint to it."""
+    ck_root = Path(args.checkpoint_dir) / args.env
+    if args.variant == "raw":
+        return Observer(args.env, "raw", None, None), {"fingerprint": 0.0, "paths": []}
+    vae_path = Path(args.vae_checkpoint) if args.vae_checkpoint else ck_root / "vae.pt"
+    vae = load_pretrained(vae_path, "vae", args.env, "collect vae")
+    gw, paths = None, [str(vae_path)]
+    if args.variant in ("clip", "gw"):
+        gw_path = Path(args.gw_checkpoint) if args.gw_checkpoint else ck_root / f"{args.variant}.pt"
+        gw = load_pretrained(gw_path, "gw", args.env, "gw", f" --loss-preset {args.variant}")
+        if gw.get("preset") != args.variant:
+            raise ValueError(
+                f"{gw_path} is a {gw.get('preset')!r} model but --variant is {args.variant!r}; make one with "
+                f"`{PRETRAIN.format(env=args.env)} --stages gw --loss-preset {args.variant}`"
+            )
+        paths.append(str(gw_path))
+    try:
+        obs = Observer(args.env, args.variant, vae, gw)
+    except RuntimeError as err:  # a state dict of other sizes
+        raise ValueError(f"{', '.join(paths)} do not fit the {args.env} networks: {err}") from err
+    return obs, {"fingerprint": float(sum(p.double().sum() for p in obs.parameters())), "paths": paths}
+
+
+class FrameStack:
+    """The last ``k`` frames of each environment, concatenated along the feature/channel axis; an
+    environment that starts an episode is refilled with k copies of its first frame."""
+
+    def __init__(self, k: int):
+        self.k, self.frames = k, None
+
+    def reset(self, frame: dict[str, torch.Tensor], idx: np.ndarray | None = None) -> dict[str, torch.Tensor]:
+        if self.frames is None or idx is None:
+            self.frames = {key: torch.cat([v] * self.k, 1) for key, v in frame.items()}
+        else:
+            for key, v in frame.items():
+                self.frames[key][idx] = torch.cat([v[idx]] * self.k, 1)
+        return {key: v.clone() for key, v in self.frames.items()}
+
+    def push(self, frame: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        self.frames = {key: self.shifted(key, v) for key, v in frame.items()}
+        return {key: v.clone() for key, v in self.frames.items()}
+
+    def shifted(self, key: str, v: torch.Tensor) -> torch.Tensor:
+        """The stack of ``key`` with ``v`` appended as the newest frame (oldest dropped)."""
+        width = v.shape[1]
+        return torch.cat([self.frames[key][:, width:], v], 1)
+
+
+# --------------------------------------------------------------------------------------------------
+# Agent (CleanRL's PPO agent; stable-baselines3's layout: a feature extractor, then separate 64-64 tanh
+# MLPs for the policy and the value)
+# --------------------------------------------------------------------------------------------------
+def layer_init(layer: nn.Linear | nn.Conv2d, std: float = math.sqrt(2), bias: float = 0.0):
+    nn.init.orthogonal_(layer.weight, std)
+    nn.init.constant_(layer.bias, bias)
+    return layer
+
+
+class RawExtractor(nn.Module):
+    """Stacked images through a small CNN (SB3's NatureCNN needs 36 px or more; Simple Shapes has 32),
+    concatenated with the stacked attribute vectors (SB3's CombinedExtractor flattens vectors)."""
+
+    def __init__(self, channels: int, side: int, attr_dim: int):
+        super().__init__()
+        convs, cin, size = [], channels, side
+        for cout in (32, 64, 64, 64)[: int(np.log2(side)) - 2]:  # down to 4x4
+            convs += [layer_init(nn.Conv2d(cin, cout, 3, 2, 1)), nn.ReLU()]
+            cin, size = cout, size // 2
+        self.cnn = nn.Sequential(
+            *convs, nn.Flatten(), layer_init(nn.Linear(cin * size * size, 256)), nn.ReLU()
+        )
+        self.out_dim = 256 + attr_dim
+
+    def forward(self, x: dict[str, torch.Tensor]) -> torch.Tensor:
+        return torch.cat([self.cnn(x["image"].float() / 255.0), x["attr"]], -1)
+
+
+class Agent(nn.Module):
+    def __init__(self, observer: Observer, args: Args, n_actions: int, discrete: bool):
+        super().__init__()
+        k = args.frame_stack
+        if observer.variant == "raw":
+            self.extract = RawExtractor(3 * k, observer.image_shape[1], observer.attr_dim * k)
+            feat = self.extract.out_dim
+        else:
+            self.extract = nn.Identity()
+            feat = observer.feat_dim * k
+        h = args.hidden
+        self.actor = nn.Sequential(
+            layer_init(nn.Linear(feat, h)), nn.Tanh(), layer_init(nn.Linear(h, h)), nn.Tanh(),
+            layer_init(nn.Linear(h, n_actions), std=0.01),
+        )  # fmt: skip
+        self.critic = nn.Sequential(
+            layer_init(nn.Linear(feat, h)), nn.Tanh(), layer_init(nn.Linear(h, h)), nn.Tanh(),
+            layer_init(nn.Linear(h, 1), std=1.0),
+        )  # fmt: skip
+        self.discrete = discrete
+        if not discrete:  # state-independent log std (CleanRL's continuous PPO)
+            self.actor_logstd = nn.Parameter(torch.zeros(1, n_actions))
+
+    def features(self, x: dict[str, torch.Tensor]) -> torch.Tensor:
+        return self.extract(x) if isinstance(self.extract, RawExtractor) else x["x"]
+
+    def get_value(self, x: dict[str, torch.Tensor]) -> torch.Tensor:
+        return self.critic(self.features(x)).squeeze(-1)
+
+    def get_action_and_value(self, x: dict[str, torch.Tensor], action: torch.Tensor | None = None):
+        f = self.features(x)
+        out = self.actor(f)
+        if self.discrete:
+            dist = torch.distributions.Categorical(logits=out)
+        else:
+            dist = torch.distributions.Normal(out, self.actor_logstd.expand_as(out).exp())
+        if action is None:
+            action = dist.sample()
+        logp, ent = dist.log_prob(action), dist.entropy()
+        if not self.discrete:
+            logp, ent = logp.sum(-1), ent.sum(-1)
+        return action, logp, ent, self.critic(f).squeeze(-1)
+
+    def act_greedy(self, x: dict[str, torch.Tensor]) -> torch.Tensor:
+        out = self.actor(self.features(x))
+        return out.argmax(-1) if self.discrete else out
+
+
+# --------------------------------------------------------------------------------------------------
+# Environments, evaluation, checkpoints
+# --------------------------------------------------------------------------------------------------
+def make_envs(args: Args, num_envs: int):
+    """Vector env with same-step autoreset (info["final_obs"] holds the last observation)."""
+    if args.env == "simple_shapes":
+        from envs.simple_shapes import SimpleShapesVectorEnv
+
+        return SimpleShapesVectorEnv(num_envs)
+    from envs.robodesk import TASKS
+
+    if args.task not in TASKS:
+        raise ValueError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
+    fns = [
+        lambda: gym.make(
+            "RoboDesk-v0",
+            task=args.task,
+            render_quality=args.render_quality,
+            episode_length=args.episode_length,
+        )
+        for _ in range(num_envs)
+    ]
+    return gym.vector.SyncVectorEnv(fns, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
+
+
+def final_observations(info: dict, ends: np.ndarray) -> dict[str, np.ndarray]:
+    """Last observations of the episodes that ended: a dict of arrays (batched Simple Shapes env) or an
+    array of per-env dicts (gymnasium's SyncVectorEnv)."""
+    fo = info["final_obs"]
+    if isinstance(fo, dict):
+        return {k: v[ends] for k, v in fo.items()}
+    return {k: np.stack([fo[i][k] for i in ends]) for k in fo[ends[0]]}
+
+
+def step_success(info: dict, n: int) -> np.ndarray:
+    """RoboDesk's per-step success flag; for an env that just reset, the flag of its final step."""
+    if "success" not in info:
+        return np.zeros(n)
+    success = np.asarray(info["success"], float).copy()
+    for i in np.flatnonzero(info.get("_final_info", np.zeros(n, bool))):
+        success[i] = float(info["final_info"]["success"][i])
+    return success
+
+
+def env_action(action: torch.Tensor, discrete: bool) -> np.ndarray:
+    a = action.cpu().numpy()
+    return a if discrete else np.clip(a, -1.0, 1.0).astype(np.float32)
+
+
+@torch.no_grad()
+def evaluate(agent: Agent, observer: Observer, args: Args, n: int, drop: str, seed: int, dev):
+    """n episodes with the greedy action (arg-max / Gaussian mean) and ``drop`` applied: per-episode
+    returns and success counts."""
+    envs_ = make_envs(args, n)
+    obs, _ = envs_.reset(seed=seed)
+    stack = FrameStack(args.frame_stack)
+    x = stack.reset(observer(obs, drop, dev))
+    returns, successes, alive = np.zeros(n), np.zeros(n), np.ones(n, bool)
+    while alive.any():
+        obs, r, term, trunc, info = envs_.step(env_action(agent.act_greedy(x), agent.discrete))
+        returns += r * alive
+        successes += step_success(info, n) * alive
+        alive &= ~(term | trunc)
+        x = stack.push(observer(obs, drop, dev))
+    envs_.close()
+    return returns, successes
+
+
+def atomic_save(obj: dict, path: Path) -> None:
+    """Write to a temporary file then rename: an interruption never leaves a torn checkpoint."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def load_agent_checkpoint(path: Path, args: Args, frozen: dict) -> dict:
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"no agent checkpoint at {path}; train one with "
+            f"`python ppo_variants.py --env {args.env} --variant {args.variant}`"
+        )
+    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    if ckpt.get("kind") != "ppo":
+        raise ValueError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected a ppo agent")
+    if (ckpt.get("env"), ckpt.get("variant")) != (args.env, args.variant):
+        raise ValueError(
+            f"{path} is a {ckpt.get('variant')!r} agent for env {ckpt.get('env')!r}, "
+            f"but this run is --variant {args.variant} --env {args.env}"
+        )
+    if abs(ckpt["fingerprint"] - frozen["fingerprint"]) > 1e-6 * max(1.0, abs(frozen["fingerprint"])):
+        raise ValueError(f"{path} was trained on other frozen weights ({', '.join(ckpt['frozen_paths'])})")
+    return ckpt
+
+
+def count_flops(fn):
+    """``fn()`` and the forward + backward FLOPs it took (torch.utils.flop_counter)."""
+    with FlopCounterMode(display=False) as counter:
+        out = fn()
+    return out, counter.get_total_flops()
+
+
+def ppo_loss(agent: Agent, mb: dict, args: Args):
+    """CleanRL's PPO loss on one minibatch: clipped surrogate, clipped value loss, entropy bonus."""
+    _, newlogp, entropy, newvalue = agent.get_action_and_value(mb["obs"], mb["actions"])
+    logratio = newlogp - mb["logprobs"]
+    ratio = logratio.exp()
+    with torch.no_grad():
+        approx_kl = ((ratio - 1) - logratio).mean()
+        clipfrac = ((ratio - 1.0).abs() > args.clip_coef).float().mean()
+    adv = mb["advantages"]
+    if args.norm_adv:
+        adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+    pg_loss = torch.max(-adv * ratio, -adv * ratio.clamp(1 - args.clip_coef, 1 + args.clip_coef)).mean()
+    if args.clip_vloss:
+        v_clipped = mb["values"] + (newvalue - mb["values"]).clamp(-args.clip_coef, args.clip_coef)
+        v_loss = 0.5 * torch.max((newvalue - mb["returns"]) ** 2, (v_clipped - mb["returns"]) ** 2).mean()
+    else:
+        v_loss = 0.5 * ((newvalue - mb["returns"]) ** 2).mean()
+    ent = entropy.mean()
+    loss = pg_loss - args.ent_coef * ent + args.vf_coef * v_loss
+    return loss, {"policy_loss": pg_loss, "value_loss": v_loss, "entropy": ent, "approx_kl": approx_kl,
+                  "clipfrac": clipfrac}  # fmt: skip
+
+
+class RewardNormalizer:
+    """r / sqrt(Var[G] + eps), G the running discounted return of each environment, Var a running
+    variance over all of them (no mean subtraction, clipped to +-10, as VecNormalize)."""
+
+    def __init__(self, num_envs: int, gamma: float, enabled: bool):
+        self.gamma, self.enabled = gamma, enabled
+        self.ret = np.zeros(num_envs)
+        self.count, self.mean, self.var = 1e-4, 0.0, 1.0
+
+    def __call__(self, r: np.ndarray, done: np.ndarray) -> np.ndarray:
+        if not self.enabled:
+            return r
+        self.ret = self.ret * self.gamma + r
+        b_mean, b_var, b_n = self.ret.mean(), self.ret.var(), len(self.ret)
+        delta, total = b_mean - self.mean, self.count + b_n  # parallel mean/variance update (Chan et al.)
+        self.var = (self.var * self.count + b_var * b_n + delta**2 * self.count * b_n / total) / total
+        self.mean, self.count = self.mean + delta * b_n / total, total
+        self.ret[done] = 0.0
+        return np.clip(r / np.sqrt(self.var + 1e-8), -10.0, 10.0)
+
+    def state_dict(self) -> dict:
+        return {"ret": self.ret, "count": self.count, "mean": self.mean, "var": self.var}
+
+    def load_state_dict(self, s: dict) -> None:
+        self.ret, self.count, self.mean, self.var = s["ret"], s["count"], s["mean"], s["var"]
+
+
+def gae(rewards, values, next_value, terminated, args: Args) -> torch.Tensor:
+    """Generalised advantage estimation over a rollout (T, N). ``terminated[t]`` cuts the bootstrap
+    after step t; time-limit truncations were already folded into the rewards (see the rollout)."""
+    adv = torch.zeros_like(rewards)
+    last = torch.zeros_like(next_value)
+    for t in reversed(range(len(rewards))):
+        nxt = next_value if t == len(rewards) - 1 else values[t + 1]
+        nonterminal = 1.0 - terminated[t]
+        delta = rewards[t] + args.gamma * nxt * nonterminal - values[t]
+        last = delta + args.gamma * args.gae_lambda * nonterminal * last
+        adv[t] = last
+    return adv
+
+
+# --------------------------------------------------------------------------------------------------
+# Training loop (CleanRL ppo.py)
+# --------------------------------------------------------------------------------------------------
+def main(args: Args) -> dict:
+    args.check()
+    if args.torch_threads:
+        torch.set_num_threads(args.torch_threads)
+    dev = torch.device(args.device)
+    if args.env == "robodesk":
+        from envs.robodesk import TASKS
+
+        if args.task not in TASKS:
+            raise ValueError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
+    observer, frozen = load_observer(args)
+    observer = observer.to(dev)
+    task = "" if args.env == "simple_shapes" else f"_{args.task}"
+    run_name = f"{args.exp_name}_{args.variant}_{args.env}{task}_s{args.seed}"
+    ck_root = Path(args.checkpoint_dir) / args.env
+    agent_path = Path(args.checkpoint) if args.checkpoint else ck_root / "agents" / f"{run_name}.pt"
+    discrete = args.env == "simple_shapes"
+    n_actions = 7 if discrete else 5
+
+    random.seed(args.seed)
+    np.random.seed(args.seed)
+    torch.manual_seed(args.seed)
+    agent = Agent(observer, args, n_actions, discrete).to(dev)
+    ref = ss_reference_returns() if args.env == "simple_shapes" else None
+
+    def normalise(ret: float) -> float:
+        return (ret - ref[0]) / (ref[1] - ref[0]) if ref else float("nan")
+
+    if args.eval_only:
+        agent.load_state_dict(load_agent_checkpoint(agent_path, args, frozen)["agent"])
+        rets, succ = evaluate(agent, observer, args, args.eval_episodes, args.drop, args.seed + 10**6, dev)
+        sem = rets.std(ddof=1) / math.sqrt(len(rets)) if len(rets) > 1 else 0.0
+        out = {"drop": args.drop, "return_mean": float(rets.mean()), "return_sem": float(sem)}
+        line = f"[eval] drop={args.drop}: return {rets.mean():.2f} ± {sem:.2f} (s.e.m., {len(rets)} episodes)"
+        if ref:
+            out["normalised_return"] = normalise(float(rets.mean()))
+            line += f", normalised {out['normalised_return']:.3f}"
+        if args.env == "robodesk":
+            out["success_count"] = float(succ.mean())
+            line += f", success count {succ.mean():.1f}"
+        print(line)
+        return out
+
+    optimizer = torch.optim.Adam(agent.parameters(), lr=args.learning_rate, eps=1e-5)
+    batch_size = args.num_envs * args.num_steps
+    num_iterations = max(args.total_steps // batch_size, 1)
+    state = {"iteration": 0, "env_steps": 0, "flops": 0, "flops_per_minibatch": 0, "recent": [],
+             "criterion_step": None, "episodes": 0}  # fmt: skip
+    reward_norm = RewardNormalizer(args.num_envs, args.gamma, args.norm_reward)
+    if args.resume:
+        ck = load_agent_checkpoint(agent_path, args, frozen)
+        agent.load_state_dict(ck["agent"])
+        optimizer.load_state_dict(ck["optimizer"])
+        state.update(ck["state"])
+        reward_norm.load_state_dict(ck["reward_norm"])
+        torch.set_rng_state(ck["torch_rng"])
+        np.random.set_state(ck["np_rng"])
+        print(f"[ppo] resuming {agent_path} at env step {state['env_steps']:,}")
+
+    writer = SummaryWriter(f"runs/{run_name}")
+    if not args.resume:
+        writer.add_text(
+            "hyperparameters",
+            "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in vars(args).items()),
+        )
+    n_params = sum(p.numel() for p in agent.parameters())
+    print(f"[ppo] {args.variant} PPO on {args.env}{task}: {n_params:,} trainable parameters, "
+          f"{num_iterations} rollouts of {batch_size:,} steps")  # fmt: skip
+    if ref:
+        print(f"[ppo] normalised return: random policy {ref[0]:.1f} -> 0, greedy policy {ref[1]:.1f} -> 1")
+
+    def save() -> None:
+        atomic_save(
+            {
+                "kind": "ppo",
+                "env": args.env,
+                "task": args.task,
+                "variant": args.variant,
+                "args": asdict(args),
+                "fingerprint": frozen["fingerprint"],
+                "frozen_paths": frozen["paths"],
+                "agent": agent.state_dict(),
+                "optimizer": optimizer.state_dict(),
+                "state": state,
+                "reward_norm": reward_norm.state_dict(),
+                "torch_rng": torch.get_rng_state(),
+                "np_rng": np.random.get_state(),
+            },
+            agent_path,
+        )
+
+    def log_episode(ret: float, success: float) -> None:
+        state["episodes"] += 1
+        step = state["env_steps"]
+        writer.add_scalar("charts/episodic_return", ret, step)
+        if args.env == "robodesk":
+            writer.add_scalar("charts/success_count", success, step)
+            return
+        state["recent"] = (state["recent"] + [normalise(ret)])[-args.smoothing :]
+        smooth = float(np.mean(state["recent"]))
+        writer.add_scalar("charts/normalised_return", normalise(ret), step)
+        writer.add_scalar("charts/smoothed_normalised_return", smooth, step)
+        if (
+            state["criterion_step"] is None
+            and len(state["recent"]) == args.smoothing
+            and smooth >= args.criterion
+        ):
+            state["criterion_step"] = step
+            writer.add_scalar("charts/criterion_step", step, step)
+            print(f"[ppo] return criterion ({args.criterion}) reached at env step {step:,}")
+
+    # Rollout storage (T, N, ...); observations keep the stacked frames the policy saw.
+    envs_ = make_envs(args, args.num_envs)
+    obs, _ = envs_.reset(seed=args.seed + state["env_steps"])
+    stack = FrameStack(args.frame_stack)
+    x = stack.reset(observer(obs, "none", dev))
+    store = {k: torch.zeros((args.num_steps, *v.shape), dtype=v.dtype, device=dev) for k, v in x.items()}
+    act_shape = () if discrete else (n_actions,)
+    act_dtype = torch.long if discrete else torch.float32
+    actions = torch.zeros((args.num_steps, args.num_envs, *act_shape), dtype=act_dtype, device=dev)
+    logprobs, rewards, values, terms = (
+        torch.zeros((args.num_steps, args.num_envs), device=dev) for _ in range(4)
+    )
+    ep_ret, ep_succ = np.zeros(args.num_envs), np.zeros(args.num_envs)
+    t0, steps0, stats = time.time(), state["env_steps"], {}
+
+    while state["iteration"] < num_iterations:
+        state["iteration"] += 1
+        if args.anneal_lr:
+            frac = 1.0 - (state["iteration"] - 1.0) / num_iterations
+            optimizer.param_groups[0]["lr"] = frac * args.learning_rate
+        for t in range(args.num_steps):
+            for k in store:
+                store[k][t] = x[k]
+            with torch.no_grad():
+                action, logp, _, value = agent.get_action_and_value(x)
+            actions[t], logprobs[t], values[t] = action, logp, value
+            obs, r, term, trunc, info = envs_.step(env_action(action, discrete))
+            state["env_steps"] += args.num_envs
+            ep_ret += r
+            ep_succ += step_success(info, args.num_envs)
+            r = torch.as_tensor(reward_norm(r, term | trunc), dtype=torch.float32, device=dev)
+            frame = observer(obs, "none", dev)
+            x = stack.push(frame)
+            ends = np.flatnonzero(term | trunc)
+            if len(ends):
+                # A time-limit truncation is not an end of the task: bootstrap its reward with the value
+                # of its final observation (stable-baselines3 does the same).
+                cut = np.flatnonzero(trunc & ~term)
+                if len(cut):
+                    final = observer(final_observations(info, cut), "none", dev)
+                    x_final = {}
+                    for k, v in final.items():  # the stack before this step's push, plus the final frame
+                        prev = store[k][t][cut]
+                        x_final[k] = torch.cat([prev[:, v.shape[1] :], v], 1)
+                    with torch.no_grad():
+                        r[cut] += args.gamma * agent.get_value(x_final)
+                x = stack.reset(frame, ends)
+                for i in ends:
+                    log_episode(float(ep_ret[i]), float(ep_succ[i]))
+                ep_ret[ends], ep_succ[ends] = 0.0, 0.0
+            rewards[t] = r
+            terms[t] = torch.as_tensor(term | trunc, dtype=torch.float32, device=dev)
+
+        with torch.no_grad():
+            advantages = gae(rewards, values, agent.get_value(x), terms, args)
+            returns = advantages + values
+        flat = {
+            "obs": {k: v.reshape(batch_size, *v.shape[2:]) for k, v in store.items()},
+            "actions": actions.reshape(batch_size, *act_shape),
+            "logprobs": logprobs.reshape(-1),
+            "advantages": advantages.reshape(-1),
+            "returns": returns.reshape(-1),
+            "values": values.reshape(-1),
+        }
+        for _ in range(args.update_epochs):
+            perm = torch.randperm(batch_size, device=dev)
+            for start in range(0, batch_size - args.minibatch_size + 1, args.minibatch_size):
+                idx = perm[start : start + args.minibatch_size]
+                mb = {
+                    k: ({kk: vv[idx] for kk, vv in v.items()} if k == "obs" else v[idx])
+                    for k, v in flat.items()
+                }
+
+                def update(mb=mb):
+                    loss, terms_ = ppo_loss(agent, mb, args)
+                    if not torch.isfinite(loss):
+                        raise FloatingPointError(
+                            f"non-finite PPO loss at env step {state['env_steps']:,}; "
+                            f"the last good checkpoint is {agent_path}"
+                        )
+                    optimizer.zero_grad(set_to_none=True)
+                    loss.backward()
+                    nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)
+                    optimizer.step()
+                    return terms_
+
+                if state["flops_per_minibatch"] == 0:  # same shapes every minibatch: count the first one
+                    stats, state["flops_per_minibatch"] = count_flops(update)
+                else:
+                    stats = update()
+                state["flops"] += state["flops_per_minibatch"]
+            if args.target_kl is not None and stats["approx_kl"] > args.target_kl:
+                break
+
+        step = state["env_steps"]
+        var_y = flat["returns"].var()
+        explained = (
+            float("nan") if var_y == 0 else (1 - (flat["returns"] - flat["values"]).var() / var_y).item()
+        )
+        sps = (step - steps0) / max(time.time() - t0, 1e-9)
+        for k, v in stats.items():
+            writer.add_scalar(f"losses/{k}", v.item(), step)
+        writer.add_scalar("losses/explained_variance", explained, step)
+        writer.add_scalar("charts/learning_rate", optimizer.param_groups[0]["lr"], step)
+        writer.add_scalar("charts/SPS", sps, step)
+        writer.add_scalar("charts/train_flops", state["flops"], step)
+        smooth = np.mean(state["recent"]) if state["recent"] else float("nan")
+        print(
+            f"[ppo] step {step:,}/{num_iterations * batch_size:,} {sps:.0f} steps/s | "
+            f"value loss {stats['value_loss'].item():.3f} entropy {stats['entropy'].item():.3f} "
+            f"smoothed normalised return {smooth:.3f}",
+            flush=True,
+        )
+        if state["iteration"] % args.save_every == 0:
+            save()
+
+    envs_.close()
+    rets, succ = evaluate(agent, observer, args, args.eval_episodes, "none", 10**6 + 1, dev)
+    writer.add_scalar("eval/episodic_return", rets.mean(), state["env_steps"])
+    save()
+    writer.close()
+    result = {
+        "env_steps": state["env_steps"],
+        "train_flops": state["flops"],
+        "criterion_step": state["criterion_step"],
+        "final_return": float(rets.mean()),
+        "wall_s": time.time() - t0,
+    }
+    if ref:
+        result["final_normalised_return"] = normalise(float(rets.mean()))
+    if args.env == "robodesk":
+        result["final_success_count"] = float(succ.mean())
+    print(f"[ppo] done: {result}; agent checkpoint {agent_path}")
+    return result
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))

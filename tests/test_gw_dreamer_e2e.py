@@ -1,0 +1,248 @@
+"""gw_dreamer_e2e.py: CLI runs on both envs, resume, modality ablation, the jointly trained GW (its losses
+fall, its weights move, the VAEs' do not), L_GW equal to pre-training's, the GW learning-rate schedule,
+errors."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from conftest import run_script
+
+import gw_dreamer_e2e as E
+import pretrain_vae_gw as P
+
+TINY = [
+    "--learning-starts", "100", "--batch-size", "4", "--batch-length", "8", "--imag-starts", "32",
+    "--imag-horizon", "5", "--train-ratio", "10", "--gw-batch-size", "64", "--eval-episodes", "2",
+    "--video-every", "0", "--log-every", "100",
+]  # fmt: skip
+AGENT = "gw_dreamer_e2e_gw_simple_shapes_s1.pt"
+
+
+def ss_args(pretrained, **kw) -> E.Args:
+    base = dict(checkpoint_dir=str(pretrained[0] / "ck"), learning_starts=50, batch_size=4, batch_length=8)
+    return E.Args(**(base | kw)).resolve()
+
+
+@pytest.fixture(scope="module")
+def ss_run(pretrained):
+    """300 steps of end-to-end GW-Dreamer on Simple Shapes through the CLI, saving at 150 and at the end."""
+    tmp = pretrained[0]
+    log = run_script(
+        "gw_dreamer_e2e.py", tmp, "--env", "simple_shapes", "--checkpoint-dir", str(tmp / "ck"), *TINY,
+        "--total-steps", "300", "--eval-every", "150", "--save-every", "150",
+    )  # fmt: skip
+    return tmp, log, tmp / "ck" / "simple_shapes" / "agents" / AGENT
+
+
+def test_simple_shapes_cli_run_trains_the_gw_saves_and_logs(ss_run):
+    tmp, log, agent = ss_run
+    assert "GW-Dreamer end to end on simple_shapes: GW 55,336" in log and "done:" in log  # table: 55K
+    ck = torch.load(agent, weights_only=False)
+    assert ck["kind"] == "gw_dreamer_e2e" and ck["state"]["env_steps"] == 300
+    assert ck["state"]["updates"] == (300 - 100) // 10
+    assert ck["state"]["gw_updates"] == 2 * ck["state"]["updates"]  # two GW updates per global step
+    assert ck["state"]["flops"] == ck["state"]["updates"] * ck["state"]["flops_per_update"] > 0
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(tmp / "runs" / "gw_dreamer_e2e_gw_simple_shapes_s1")).Reload()
+    tags = acc.Tags()["scalars"]
+    for tag in ("charts/episodic_return", "charts/SPS", "charts/gw_lr", "losses/loss_wm", "losses/loss_gw"):
+        assert tag in tags, tags
+    for term in ("dcy", "cy", "tr", "fusion", "cont"):
+        assert f"losses/loss_{term}" in tags
+    assert "dreams/real_top_imagined_bottom" in acc.Tags()["images"]
+
+
+def flops_of_one_update(gw_batch: int) -> int:
+    torch.manual_seed(0)
+    args = E.Args(
+        batch_size=2, batch_length=4, imag_starts=4, imag_horizon=2, gw_batch_size=gw_batch
+    ).resolve()
+    agent = E.Agent("simple_shapes", "twohot")
+    opts, replay = E.make_optimizers(agent, args), fill_replay_with_noise(60)
+    state = {"env_steps": 0, "gw_updates": 0, "return_scale": 0.0, "updates": 0}
+    return E.count_flops(lambda: E.train_update(agent, opts, replay, args, state, "cpu"))[1]
+
+
+def test_gw_flops_are_counted():
+    """An update's FLOPs grow with the GW batch: the GW's training is part of the count."""
+    assert flops_of_one_update(256) > flops_of_one_update(16) > 0
+
+
+def test_resume_continues_the_saved_run(ss_run):
+    tmp, _, agent = ss_run
+    log = run_script(
+        "gw_dreamer_e2e.py", tmp, "--env", "simple_shapes", "--checkpoint-dir", str(tmp / "ck"), *TINY,
+        "--total-steps", "400", "--resume", "--eval-every", "1000", "--save-every", "1000",
+    )  # fmt: skip
+    assert "resuming" in log and "at env step 300" in log
+    ck = torch.load(agent, weights_only=False)
+    assert ck["state"]["env_steps"] == 400 and ck["state"]["gw_updates"] == 2 * (400 - 100) // 10
+
+
+def test_eval_only_with_each_drop_and_the_vae_check(ss_run, pretrained, tmp_path):
+    tmp, _, agent = ss_run
+    log = run_script(
+        "gw_dreamer_e2e.py", tmp, "--env", "simple_shapes", "--checkpoint-dir", str(tmp / "ck"),
+        "--eval-only", "--checkpoint", str(agent), "--drop", "attr", "--eval-episodes", "3",
+    )  # fmt: skip
+    assert "drop=attr: return" in log and "3 episodes" in log
+    for drop in ("none", "vision"):
+        out = E.main(ss_args(pretrained, eval_only=True, checkpoint=str(agent), drop=drop, eval_episodes=3))
+        assert out["drop"] == drop and math.isfinite(out["return_mean"])
+    vae = torch.load(pretrained[0] / "ck" / "simple_shapes" / "vae.pt", weights_only=False)
+    vae["vae_attr"] = {k: v + 0.01 for k, v in vae["vae_attr"].items()}
+    torch.save(vae, tmp_path / "other_vae.pt")
+    with pytest.raises(ValueError, match="trained on other VAE weights"):
+        E.main(
+            ss_args(
+                pretrained,
+                eval_only=True,
+                checkpoint=str(agent),
+                vae_checkpoint=str(tmp_path / "other_vae.pt"),
+            )
+        )
+
+
+def test_dropping_a_modality_removes_it_from_z():
+    torch.manual_seed(0)
+    agent = E.Agent("simple_shapes", "twohot")
+    u_v, u_attr, other = torch.randn(4, 10), torch.randn(4, 10), torch.randn(4, 10)
+    assert torch.equal(agent.z(u_v, u_attr, "vision"), agent.z(other, u_attr, "vision"))
+    assert torch.equal(agent.z(u_v, u_attr, "attr"), agent.z(u_v, other, "attr"))
+    assert not torch.equal(agent.z(u_v, u_attr), agent.z(other, u_attr))
+
+
+def test_robodesk_cli_run(pretrained_robodesk):
+    tmp = pretrained_robodesk[0]
+    log = run_script(
+        "gw_dreamer_e2e.py", tmp, "--env", "robodesk", "--task", "push_green",
+        "--checkpoint-dir", str(tmp / "ck"), "--render-quality", "fast", *TINY, "--eval-episodes", "1",
+        "--total-steps", "200", "--episode-length", "240", "--batch-size", "2", "--imag-starts", "8",
+        "--eval-every", "1000", timeout=600,
+    )  # fmt: skip
+    assert "end to end on robodesk_push_green" in log and "final_success_count" in log
+    ck = torch.load(tmp / "ck" / "robodesk" / "agents" / "gw_dreamer_e2e_gw_robodesk_push_green_s1.pt",
+                    weights_only=False)  # fmt: skip
+    assert ck["state"]["updates"] == 10 and ck["state"]["gw_updates"] == 20
+
+
+# --------------------------------------------------------------------------------------------------
+# The jointly trained Global Workspace
+# --------------------------------------------------------------------------------------------------
+def fill_replay_with_noise(n: int) -> E.Replay:
+    rng = np.random.default_rng(0)
+    replay = E.Replay(1_000, 1, 10, 7, seed=0)
+    for t in range(n):
+        u = rng.normal(size=(2, 1, 10)).astype(np.float32)
+        replay.add([0], u[0], u[1], np.eye(7)[[t % 7]], [-1.0], [0], [t == 0], [0])
+    return replay
+
+
+def random_replay(vaes: E.FrozenVAEs, steps: int, seed: int = 0) -> E.Replay:
+    """Random-policy Simple Shapes transitions stored as the training loop stores them."""
+    from envs.simple_shapes import SimpleShapesVectorEnv
+
+    env, rng = SimpleShapesVectorEnv(1, max_episode_steps=50), np.random.default_rng(seed)
+    replay = E.Replay(10_000, 1, 10, 7, seed)
+    obs, _ = env.reset(seed=seed)
+    first = 1.0
+    for _ in range(steps):
+        a = rng.integers(0, 7, 1)
+        u_v, u_attr = (u.numpy() for u in vaes(obs))
+        obs, r, term, trunc, info = env.step(a)
+        replay.add([0], u_v, u_attr, np.eye(7)[a], r, term, [first], [0])
+        first = 0.0
+        if term[0] or trunc[0]:
+            u_v, u_attr = (u.numpy() for u in vaes(info["final_obs"]))
+            replay.add([0], u_v, u_attr, np.zeros((1, 7)), [0], [0], [0], [1])
+            first = 1.0
+    return replay
+
+
+def test_joint_training_lowers_the_gw_losses_and_keeps_the_vaes_frozen(pretrained):
+    vaes = E.load_vaes("simple_shapes", pretrained[0] / "ck" / "simple_shapes" / "vae.pt")
+    vae_before = {k: v.clone() for k, v in vaes.state_dict().items()}
+    replay = random_replay(vaes, 300)
+    torch.manual_seed(0)
+    args = E.Args(batch_size=4, batch_length=8, imag_starts=16, imag_horizon=5, gw_batch_size=128).resolve()
+    agent = E.Agent("simple_shapes", "twohot")
+    gw_before = {k: v.clone() for k, v in agent.gw.state_dict().items()}
+    wm_before = {k: v.clone() for k, v in agent.wm.state_dict().items()}
+    opts = E.make_optimizers(agent, args)
+    state = {"env_steps": 0, "gw_updates": 0, "return_scale": 0.0, "updates": 0}
+    logs = []
+    for _ in range(60):
+        logs.append(E.train_update(agent, opts, replay, args, state, "cpu"))
+        state["updates"] += 1
+    first = np.mean([log["loss_gw"] for log in logs[:5]])
+    last = np.mean([log["loss_gw"] for log in logs[-5:]])
+    assert last < 0.6 * first, (first, last)
+    assert np.mean([log["loss_dcy"] for log in logs[-5:]]) < np.mean([log["loss_dcy"] for log in logs[:5]])
+    assert state["gw_updates"] == 120
+    assert all(not torch.equal(gw_before[k], v) for k, v in agent.gw.state_dict().items() if "weight" in k)
+    assert any(not torch.equal(wm_before[k], v) for k, v in agent.wm.state_dict().items())
+    assert all(torch.equal(vae_before[k], v) for k, v in vaes.state_dict().items())  # BatchNorm stats too
+    assert not any(p.requires_grad for p in vaes.parameters())
+
+
+def test_world_model_and_actor_critic_send_no_gradient_into_the_gw():
+    torch.manual_seed(0)
+    args = E.Args(batch_size=2, batch_length=4, imag_starts=4, imag_horizon=3, gw_updates=0).resolve()
+    agent = E.Agent("simple_shapes", "twohot")
+    gw_before = {k: v.clone() for k, v in agent.gw.state_dict().items()}
+    opts = E.make_optimizers(agent, args)
+    state = {"env_steps": 0, "gw_updates": 0, "return_scale": 0.0, "updates": 0}
+    E.train_update(agent, opts, fill_replay_with_noise(40), args, state, "cpu")
+    assert all(torch.equal(gw_before[k], v) for k, v in agent.gw.state_dict().items())
+    assert all(p.grad is None for p in agent.gw.parameters())
+
+
+def test_gw_losses_are_the_pretraining_losses():
+    """Same weights, same batch, same fusion weights: the e2e L_GW terms equal pretrain_vae_gw.py's."""
+    torch.manual_seed(0)
+    gw_e2e, gw_pre = E.GlobalWorkspace(10, 10, 64), P.GlobalWorkspace(10, 10, 64)
+    gw_pre.load_state_dict(gw_e2e.state_dict())
+    u_v, u_attr, alpha = torch.randn(32, 10), torch.randn(32, 10), torch.rand(32, 1)
+    ours = E.gw_losses(gw_e2e, u_v, u_attr, alpha, 0.07)
+    theirs = P.gw_losses(gw_pre, {"v": u_v, "attr": u_attr}, alpha, 0.07)
+    assert ours.keys() == theirs.keys()
+    for k in ours:
+        torch.testing.assert_close(ours[k], theirs[k])
+
+
+def test_gw_learning_rate_follows_the_one_cycle_table():
+    args = E.Args().resolve()
+    assert (args.gw_lr_start, args.gw_lr_max, args.gw_lr_end, args.gw_cycle) == (3e-3, 1e-2, 1e-3, 25_000)
+    assert math.isclose(E.gw_lr(0, args), 3e-3)
+    assert math.isclose(E.gw_lr(7_500, args), 1e-2)
+    assert math.isclose(E.gw_lr(25_000, args), 1e-3) and math.isclose(E.gw_lr(80_000, args), 1e-3)
+    # torch's OneCycleLR with the same table values agrees over the cycle.
+    opt = torch.optim.SGD([torch.zeros(1, requires_grad=True)], lr=1.0)
+    sched = torch.optim.lr_scheduler.OneCycleLR(
+        opt, max_lr=1e-2, total_steps=25_000, div_factor=1e-2 / 3e-3, final_div_factor=3e-3 / 1e-3
+    )
+    for step in range(25_000):
+        if step % 2_500 == 0:
+            assert math.isclose(E.gw_lr(step, args), sched.get_last_lr()[0], rel_tol=2e-3), step
+        opt.step()
+        sched.step()
+    rd = E.Args(env="robodesk").resolve()
+    assert (rd.gw_lr_start, rd.gw_lr_max, rd.gw_lr_end, rd.gw_cycle) == (1e-4, 3e-4, 1e-4, 50_000)
+    assert (args.gw_batch_size, rd.gw_batch_size, args.gw_updates) == (64 * 32, 32 * 128, 2)
+
+
+def test_missing_checkpoints_are_explained(pretrained, pretrained_robodesk, tmp_path):
+    with pytest.raises(
+        FileNotFoundError, match="python pretrain_vae_gw.py --env simple_shapes --stages collect vae"
+    ):
+        E.main(E.Args(checkpoint_dir=str(tmp_path)))
+    rd_vae = pretrained_robodesk[0] / "ck" / "robodesk" / "vae.pt"
+    with pytest.raises(ValueError, match="made for env 'robodesk'.*'simple_shapes'"):
+        E.main(ss_args(pretrained, vae_checkpoint=str(rd_vae)))
+    with pytest.raises(FileNotFoundError, match="python gw_dreamer_e2e.py --env simple_shapes"):
+        E.main(ss_args(pretrained, eval_only=True, checkpoint=str(tmp_path / "none.pt")))
+    with pytest.raises(ValueError, match="unknown RoboDesk task 'fly'"):
+        E.main(E.Args(env="robodesk", task="fly", checkpoint_dir=str(pretrained_robodesk[0] / "ck")))

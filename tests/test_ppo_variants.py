@@ -1,0 +1,186 @@
+"""ppo_variants.py: CLI runs of every variant on both envs, learning on Simple Shapes, resume, modality
+ablation, GAE, frame stacking, reward normalisation, errors."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from conftest import run_script
+
+import ppo_variants as PPO
+
+TINY = [
+    "--num-envs", "2", "--num-steps", "64", "--update-epochs", "2", "--minibatch-size", "64",
+    "--eval-episodes", "2",
+]  # fmt: skip
+VARIANTS = ("raw", "vae", "clip", "gw")
+
+
+def agent_path(folder, env: str, variant: str, task: str = "") -> str:
+    return str(folder / "ck" / env / "agents" / f"ppo_{variant}_{env}{task}_s1.pt")
+
+
+@pytest.fixture(scope="module")
+def ss_runs(pretrained):
+    """256 steps of each variant on Simple Shapes through the CLI."""
+    tmp = pretrained[0]
+    logs = {
+        v: run_script("ppo_variants.py", tmp, "--variant", v, "--checkpoint-dir", str(tmp / "ck"), *TINY,
+                      "--total-steps", "256")
+        for v in VARIANTS
+    }  # fmt: skip
+    return tmp, logs
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_simple_shapes_cli_run_of_each_variant(ss_runs, variant):
+    tmp, logs = ss_runs
+    assert f"{variant} PPO on simple_shapes" in logs[variant] and "done:" in logs[variant]
+    ck = torch.load(agent_path(tmp, "simple_shapes", variant), weights_only=False)
+    assert ck["kind"] == "ppo" and ck["variant"] == variant and ck["state"]["env_steps"] == 256
+    # 2 rollouts x 2 epochs x 2 minibatches, each with the FLOPs of the first
+    assert ck["state"]["flops"] == 8 * ck["state"]["flops_per_minibatch"] > 0
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(tmp / "runs" / f"ppo_{variant}_simple_shapes_s1")).Reload()
+    tags = acc.Tags()["scalars"]
+    for tag in ("charts/episodic_return", "charts/normalised_return", "charts/SPS", "charts/train_flops",
+                "losses/value_loss", "losses/policy_loss"):  # fmt: skip
+        assert tag in tags, tags
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_robodesk_cli_run_of_each_variant(pretrained_robodesk, variant):
+    tmp = pretrained_robodesk[0]
+    log = run_script(
+        "ppo_variants.py", tmp, "--env", "robodesk", "--variant", variant,
+        "--checkpoint-dir", str(tmp / "ck"), "--render-quality", "fast", "--episode-length", "80", *TINY,
+        "--num-steps", "32", "--total-steps", "64", "--eval-episodes", "1", timeout=600,
+    )  # fmt: skip
+    assert f"{variant} PPO on robodesk_push_green" in log and "final_success_count" in log
+    ck = torch.load(agent_path(tmp, "robodesk", variant, "_push_green"), weights_only=False)
+    assert ck["state"]["env_steps"] == 64 and "actor_logstd" in ck["agent"]  # Gaussian actions
+
+
+def test_a_short_run_beats_the_random_policy(tmp_path, monkeypatch):
+    """10,240 steps of multimodal PPO on Simple Shapes: the greedy policy's normalised return (0 = random,
+    1 = scripted greedy) is well above 0 (measured 0.51 and 0.50 on seeds 1 and 2)."""
+    monkeypatch.chdir(tmp_path)  # TensorBoard writes runs/ in the working directory
+    out = PPO.main(
+        PPO.Args(
+            variant="raw",
+            checkpoint_dir=str(tmp_path / "ck"),
+            num_steps=512,
+            total_steps=10_240,
+            update_epochs=4,
+            minibatch_size=256,
+            eval_episodes=20,
+        )  # fmt: skip
+    )
+    assert out["final_normalised_return"] > 0.25, out
+
+
+def test_resume_continues_the_saved_run(ss_runs):
+    tmp, _ = ss_runs
+    log = run_script(
+        "ppo_variants.py", tmp, "--variant", "gw", "--checkpoint-dir", str(tmp / "ck"), *TINY,
+        "--total-steps", "512", "--resume",
+    )  # fmt: skip
+    assert "resuming" in log and "at env step 256" in log
+    ck = torch.load(agent_path(tmp, "simple_shapes", "gw"), weights_only=False)
+    assert ck["state"]["env_steps"] == 512 and ck["state"]["iteration"] == 4
+
+
+def test_eval_only_with_each_drop(ss_runs, pretrained):
+    tmp, _ = ss_runs
+    log = run_script(
+        "ppo_variants.py", tmp, "--variant", "clip", "--checkpoint-dir", str(tmp / "ck"), "--eval-only",
+        "--drop", "vision", "--eval-episodes", "3",
+    )  # fmt: skip
+    assert "drop=vision: return" in log and "3 episodes" in log
+    for variant in ("raw", "vae"):
+        for drop in ("none", "vision", "attr"):
+            args = PPO.Args(variant=variant, checkpoint_dir=str(tmp / "ck"), eval_only=True, drop=drop,
+                            eval_episodes=2)  # fmt: skip
+            out = PPO.main(args)
+            assert out["drop"] == drop and math.isfinite(out["return_mean"])
+
+
+def test_a_removed_modality_no_longer_reaches_the_policy(pretrained):
+    from envs.simple_shapes import sample_dataset
+
+    a, b = sample_dataset(4, seed=0), sample_dataset(4, seed=1)
+    other_image = {"image": b["image"], "attr": a["attr"]}
+    other_attr = {"image": a["image"], "attr": b["attr"]}
+    for variant in VARIANTS:
+        obs, _ = PPO.load_observer(PPO.Args(variant=variant, checkpoint_dir=str(pretrained[0] / "ck")))
+        for drop, changed in (("vision", other_image), ("attr", other_attr)):
+            x, y = obs(a, drop, "cpu"), obs(changed, drop, "cpu")
+            assert all(torch.equal(x[k], y[k]) for k in x), (variant, drop)
+        x, y = obs(a, "none", "cpu"), obs(other_image, "none", "cpu")
+        assert not all(torch.equal(x[k], y[k]) for k in x), variant
+
+
+# --------------------------------------------------------------------------------------------------
+# Pieces
+# --------------------------------------------------------------------------------------------------
+def test_gae_matches_hand_computed_values():
+    args = PPO.Args(gamma=0.5, gae_lambda=0.5)
+    rewards = torch.tensor([[1.0], [2.0], [3.0]])
+    values = torch.tensor([[0.5], [1.0], [1.5]])
+    terminated = torch.tensor([[0.0], [1.0], [0.0]])
+    next_value = torch.tensor([2.0])
+    adv = PPO.gae(rewards, values, next_value, terminated, args)
+    d2 = 3 + 0.5 * 2.0 - 1.5  # 2.5
+    d1 = 2 + 0 - 1.0  # the episode ends after step 1: no bootstrap, and step 2's advantage is not added
+    d0 = 1 + 0.5 * 1.0 - 0.5  # 1.0
+    expected = [d0 + 0.25 * d1, d1, d2]
+    torch.testing.assert_close(adv[:, 0], torch.tensor(expected))
+
+
+def test_frame_stack_keeps_the_last_frames_and_refills_new_episodes():
+    stack = PPO.FrameStack(3)
+    x = stack.reset({"x": torch.tensor([[1.0], [10.0]])})
+    assert x["x"].tolist() == [[1, 1, 1], [10, 10, 10]]
+    x = stack.push({"x": torch.tensor([[2.0], [11.0]])})
+    x = stack.push({"x": torch.tensor([[3.0], [12.0]])})
+    assert x["x"].tolist() == [[1, 2, 3], [10, 11, 12]]
+    x = stack.push({"x": torch.tensor([[4.0], [20.0]])})
+    x = stack.reset({"x": torch.tensor([[4.0], [20.0]])}, np.array([1]))  # env 1 started an episode
+    assert x["x"].tolist() == [[2, 3, 4], [20, 20, 20]]
+
+
+def test_reward_normaliser_scales_by_the_return_std():
+    norm = PPO.RewardNormalizer(num_envs=4, gamma=0.9, enabled=True)
+    rng = np.random.default_rng(0)
+    for t in range(3_000):
+        out = norm(rng.normal(-20, 5, 4), np.full(4, t % 100 == 99))
+    # discounted returns of ~-20 per step reach about -200: rewards come out around -20 / 200-ish std
+    assert np.all(np.abs(out) < 10) and 0.05 < np.abs(out).mean() < 5
+    assert np.array_equal(
+        PPO.RewardNormalizer(1, 0.9, enabled=False)(np.array([-7.0]), np.array([False])), [-7]
+    )
+
+
+def test_errors_are_explained(pretrained, pretrained_robodesk, tmp_path):
+    with pytest.raises(
+        FileNotFoundError, match="python pretrain_vae_gw.py --env simple_shapes --stages collect vae"
+    ):
+        PPO.main(PPO.Args(variant="vae", checkpoint_dir=str(tmp_path)))
+    ck = pretrained[0] / "ck"
+    with pytest.raises(ValueError, match="is a 'clip' model but --variant is 'gw'"):
+        PPO.main(
+            PPO.Args(
+                variant="gw", checkpoint_dir=str(ck), gw_checkpoint=str(ck / "simple_shapes" / "clip.pt")
+            )
+        )
+    rd_vae = str(pretrained_robodesk[0] / "ck" / "robodesk" / "vae.pt")
+    with pytest.raises(ValueError, match="made for env 'robodesk'"):
+        PPO.main(PPO.Args(variant="vae", checkpoint_dir=str(ck), vae_checkpoint=rd_vae))
+    with pytest.raises(FileNotFoundError, match="python ppo_variants.py --env simple_shapes --variant raw"):
+        PPO.main(PPO.Args(variant="raw", checkpoint_dir=str(tmp_path), eval_only=True))
+    with pytest.raises(ValueError, match="unknown RoboDesk task 'fly'"):
+        PPO.main(PPO.Args(env="robodesk", task="fly", variant="raw"))
+    with pytest.raises(ValueError, match="smaller than one minibatch"):
+        PPO.main(PPO.Args(variant="raw", num_steps=8, minibatch_size=512))
