@@ -141,6 +141,10 @@ class Args:
     """only evaluate --checkpoint (the modality ablation with --drop) and exit"""
     drop: Literal["none", "vision", "attr"] = "none"
     """modality removed at evaluation: vision -> alpha = (0, 1), attr -> alpha = (1, 0)"""
+    z_source: Literal["gw", "attributes"] = "gw"
+    """gw: the paper's z_t. attributes: a control, not a paper variant (Simple Shapes only): z_t is the
+    true attribute vector (its first 10 entries, clipped to [-1, 1]) instead of the GW's, which tests the
+    world model and actor-critic alone (README, GW-Dreamer status)"""
 
     def resolve(self) -> Args:
         """The CPU preset (if asked) for every flag left at its default, then the tables' defaults."""
@@ -301,12 +305,18 @@ class FrozenEncoder(nn.Module):
         self.register_buffer("attr_mean", torch.as_tensor(vae["attr_mean"], dtype=torch.float32))
         self.register_buffer("attr_std", torch.as_tensor(vae["attr_std"], dtype=torch.float32))
         self.preset = gw.get("preset", "gw")  # "gw" or "clip": GW-Dreamer or CLIP-Dreamer
+        # RoboDesk tasks whose expert data the GW was trained on (the others are zero-shot for it).
+        labels = gw.get("data", {}).get("samples_per_source_and_task", {})
+        self.expert_tasks = sorted(k.split("/", 1)[1] for k in labels if k.startswith("expert/"))
         self.z_dim = s["z"]
+        self.z_source = "gw"  # "attributes": the control of --z-source
         self.eval().requires_grad_(False)
 
     @torch.no_grad()
     def forward(self, obs: dict[str, np.ndarray], alpha_v: float = 0.5, alpha_attr: float = 0.5):
         dev = self.attr_mean.device
+        if self.z_source == "attributes":
+            return torch.as_tensor(obs["attr"][:, : self.z_dim], device=dev, dtype=torch.float32).clamp(-1, 1)
         # A removed modality contributes nothing: its fusion weight is 0 and its input is not read.
         absent = torch.zeros(len(obs["attr"]), self.gw.e["v"][0].in_features, device=dev)
         u_v = u_attr = absent
@@ -841,6 +851,13 @@ def main(args: Args) -> dict:
         if args.task not in TASKS:
             raise ValueError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
     encoder = load_encoder(args.env, vae_path, gw_path).to(dev)
+    if args.z_source == "attributes":
+        if args.env != "simple_shapes":
+            raise ValueError(
+                "--z-source attributes is a Simple Shapes control (RoboDesk attributes are unbounded)"
+            )
+        encoder.z_source = "attributes"
+        args.exp_name += "_attrz"
     model_name = "gw" if encoder.preset == "gw" else "clip"  # GW-Dreamer or CLIP-Dreamer
     task = "" if args.env == "simple_shapes" else f"_{args.task}"
     run_name = f"{args.exp_name}_{model_name}_{args.env}{task}_s{args.seed}"
@@ -912,6 +929,12 @@ def main(args: Args) -> dict:
         f"[gw_dreamer] {model_name.upper()}-Dreamer on {args.env}{task}: world model {n_params['wm']:,}, "
         f"actor {n_params['actor']:,}, critic {n_params['critic']:,} parameters (+ {frozen:,} frozen)"
     )
+    if args.env == "robodesk":
+        seen = args.task in encoder.expert_tasks
+        print(
+            f"[gw_dreamer] the GW was trained on expert data of {encoder.expert_tasks or 'no task'} "
+            f"(and random data): {args.task} is {'a task it saw' if seen else 'zero-shot for it'}"
+        )
     if ref:
         print(
             f"[gw_dreamer] normalised return: random policy {ref[0]:.1f} -> 0, "

@@ -37,7 +37,17 @@ class Args:
     stages: tuple[Literal["collect", "vae", "gw"], ...] = ("collect", "vae", "gw")
     """stages to run, in this order"""
     task: str = "push_green"
-    """RoboDesk task of the random/expert data (ignored for Simple Shapes)"""
+    """RoboDesk task whose expert collects the expert data, unless --tasks is given (ignored for Simple
+    Shapes)"""
+    tasks: tuple[str, ...] = ()
+    """RoboDesk tasks for a multi-task dataset (one GW for all of them, paper section "Unique Global
+    Workspace for all tasks"): each task's scripted expert (envs/robodesk_experts.py) collects an equal
+    share; default: just --task"""
+    expert_fraction: float | None = None
+    """share of expert samples in the RoboDesk data (default k/(k+1) for k tasks: the paper's 1M random +
+    1M expert for one task, and 500k per task + 500k random for six)"""
+    expert_noise: float = 0.1
+    """std of the Gaussian noise added to the scripted experts' actions (more varied data)"""
     seed: int = 1
     """seed of data collection, initialisation and batches"""
     data_dir: str = "data"
@@ -55,9 +65,11 @@ class Args:
 
     # collect
     n_samples: int | None = None
-    """samples to collect (default: 500,000 Simple Shapes; RoboDesk 1,000,000 random)"""
+    """samples to collect (default: 500,000 Simple Shapes; RoboDesk 2,000,000, the paper's 1M random + 1M
+    expert; use 3,500,000 for its six-task dataset)"""
     expert_checkpoint: str | None = None
-    """RoboDesk expert policy checkpoint (from dreamer_baseline.py) for the expert half of the data"""
+    """RoboDesk expert policy checkpoint from dreamer_baseline.py, instead of the scripted experts (not
+    available yet: dreamer_baseline.py does not exist)"""
     shard_size: int = 50_000
     """samples per compressed shard"""
     render_quality: Literal["faithful", "fast"] = "faithful"
@@ -117,7 +129,7 @@ class Args:
         """Fill the per-environment defaults of the appendix tables."""
         ss = self.env == "simple_shapes"
         for name, ss_value, rd_value in [
-            ("n_samples", 500_000, 1_000_000),
+            ("n_samples", 500_000, 2_000_000),
             ("vae_lr_v", 5e-3, 3e-4),
             ("vae_lr_attr", 5e-3, 5e-4),
             ("vae_lr_start_end", 5e-3, 1e-4),
@@ -219,15 +231,39 @@ def shard_paths(folder: Path) -> list[Path]:
     return sorted(folder.glob("shard_*.npz"))
 
 
-def write_shard(folder: Path, image: np.ndarray, attr: np.ndarray, source: str) -> Path:
+def write_shard(folder: Path, image: np.ndarray, attr: np.ndarray, source, task) -> Path:
+    """One compressed shard; ``source`` ("random" / "expert") and ``task`` label every sample (a single
+    string labels them all)."""
     folder.mkdir(parents=True, exist_ok=True)
     existing = shard_paths(folder)
     index = int(existing[-1].stem.split("_")[1]) + 1 if existing else 0
     path = folder / f"shard_{index:05d}.npz"
     tmp = folder / f".tmp_shard_{index:05d}.npz"
-    np.savez_compressed(tmp, image=image, attr=attr.astype(np.float32), source=np.array(source))
+    n = len(attr)
+    source, task = np.broadcast_to(np.asarray(source), (n,)), np.broadcast_to(np.asarray(task), (n,))
+    np.savez_compressed(tmp, image=image, attr=attr.astype(np.float32), source=source, task=task)
     os.replace(tmp, path)
     return path
+
+
+def load_labels(folder: Path) -> tuple[np.ndarray, np.ndarray]:
+    """Per-sample (source, task) of every shard of ``folder``, in the order of ``load_data``."""
+    sources, tasks = [], []
+    for p in shard_paths(folder):
+        with np.load(p) as d:
+            n = len(d["attr"])
+            sources.append(np.broadcast_to(d["source"], (n,)))
+            tasks.append(np.broadcast_to(d["task"], (n,)) if "task" in d else np.full(n, ""))
+    return np.concatenate(sources), np.concatenate(tasks)
+
+
+def label_counts(folder: Path) -> dict[str, int]:
+    """Samples per "source/task" label, e.g. {"expert/push_green": 500, "random/": 500}."""
+    sources, tasks = load_labels(folder)
+    labels, counts = np.unique(
+        np.char.add(np.char.add(sources.astype(str), "/"), tasks.astype(str)), return_counts=True
+    )
+    return {str(k): int(v) for k, v in zip(labels, counts, strict=True)}
 
 
 def load_data(folder: Path, env: str) -> tuple[np.ndarray, np.ndarray]:
@@ -270,33 +306,86 @@ def collect(args: Args) -> None:
         while need > 0:
             n = min(args.shard_size, need)
             d = sample_dataset(n, seed=rng_seed)
-            write_shard(folder, d["image"], d["attr"], "random")
+            write_shard(folder, d["image"], d["attr"], "random", "")
             rng_seed, need, have = rng_seed + 1, need - n, have + n
             progress.show(have)
         return
 
+    collect_robodesk(args, folder, need, have, rng_seed, progress)
+
+
+def robodesk_plan(args: Args, need: int) -> list[tuple[str, str, int]]:
+    """(source, task, samples) blocks: an equal expert share per task, the rest random (random episodes
+    run in the first task's env; the task only changes the reward, which is not stored)."""
+    from envs.robodesk import TASKS
+    from envs.robodesk_experts import EXPERTS
+
+    tasks = tuple(args.tasks) or (args.task,)
+    for t in tasks:
+        if t not in TASKS:
+            raise ValueError(f"unknown RoboDesk task {t!r}; valid tasks: {', '.join(TASKS)}")
+        if t not in EXPERTS:
+            raise ValueError(
+                f"no scripted expert for {t!r}; experts exist for {', '.join(EXPERTS)} "
+                f"(or give --expert-fraction 0 for random data only)"
+            )
+    frac = len(tasks) / (len(tasks) + 1) if args.expert_fraction is None else args.expert_fraction
+    if not 0.0 <= frac <= 1.0:
+        raise ValueError(f"--expert-fraction must be in [0, 1], got {frac}")
+    per_task = int(round(need * frac)) // len(tasks)
+    blocks = [("expert", t, per_task) for t in tasks if per_task > 0]
+    return blocks + [("random", tasks[0], need - per_task * len(blocks))]
+
+
+def collect_robodesk(args: Args, folder: Path, need: int, have: int, seed: int, progress: Progress) -> None:
+    """Full episodes of the scripted experts (with action noise) and of a uniformly random policy, in the
+    proportions of ``robodesk_plan``, written as labelled shards."""
     from envs.robodesk import RoboDeskEnv
+    from envs.robodesk_experts import EXPERTS
 
     if args.expert_checkpoint is not None:
         raise NotImplementedError(
-            "expert data needs a policy from dreamer_baseline.py, which does not exist yet; "
-            "collect random data by leaving out --expert-checkpoint"
+            "--expert-checkpoint needs a policy from dreamer_baseline.py, which does not exist yet; "
+            "the scripted experts of envs/robodesk_experts.py are used without it"
         )
-    print("[collect] no --expert-checkpoint: collecting RANDOM-policy RoboDesk data only")
-    env = RoboDeskEnv(task=args.task, render_quality=args.render_quality)
-    obs, _ = env.reset(seed=rng_seed)
-    rng = np.random.default_rng(rng_seed)
-    while need > 0:
-        n = min(args.shard_size, need)
-        images, attrs = np.empty((n, 64, 64, 3), np.uint8), np.empty((n, 76), np.float32)
-        for i in range(n):
-            images[i], attrs[i] = obs["image"], obs["attr"]
-            obs, _, term, trunc, _ = env.step(rng.uniform(-1, 1, 5))
-            if term or trunc:
-                obs, _ = env.reset()
-        write_shard(folder, images, attrs, "random")
-        need, have = need - n, have + n
-        progress.show(have)
+    blocks = robodesk_plan(args, need)
+    print("[collect] RoboDesk data: " + ", ".join(f"{n:,} {src} ({t})" for src, t, n in blocks if n))
+    buf = {"image": [], "attr": [], "source": [], "task": []}
+
+    def flush(force: bool) -> None:
+        nonlocal have
+        while len(buf["attr"]) >= args.shard_size or (force and buf["attr"]):
+            k = min(args.shard_size, len(buf["attr"]))
+            write_shard(folder, np.stack(buf["image"][:k]), np.stack(buf["attr"][:k]), buf["source"][:k],
+                        buf["task"][:k])  # fmt: skip
+            for key in buf:
+                del buf[key][:k]
+            have += k
+            progress.show(have)
+
+    rng = np.random.default_rng(seed)
+    for b, (source, task, n) in enumerate(blocks):
+        env = RoboDeskEnv(task=task, render_quality=args.render_quality)
+        policy = EXPERTS[task](env, noise=args.expert_noise, seed=seed + b) if source == "expert" else None
+        left, episode = n, 0
+        while left > 0:
+            obs, _ = env.reset(seed=seed + 1_000 * b + episode)
+            episode += 1
+            if policy is not None:
+                policy.reset()
+            done = False
+            while not done and left > 0:
+                buf["image"].append(obs["image"])
+                buf["attr"].append(obs["attr"])
+                buf["source"].append(source)
+                buf["task"].append(task if source == "expert" else "")
+                left -= 1
+                action = policy.act(env) if policy is not None else rng.uniform(-1, 1, 5)
+                obs, _, term, trunc, _ = env.step(action)
+                done = term or trunc
+            flush(False)
+        env.close()
+    flush(True)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -540,6 +629,7 @@ def train_vae(args: Args, writer: SummaryWriter) -> None:
                 "folder": str(env_dir(args.data_dir, args)),
                 "n_samples": len(images),
                 "eval_samples": n_eval,
+                "samples_per_source_and_task": label_counts(env_dir(args.data_dir, args)),
             },
             "eval": {"recon_mse_v": mse_v, "recon_mse_attr": mse_attr},
         },

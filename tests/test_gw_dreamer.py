@@ -101,6 +101,7 @@ def test_robodesk_cli_run(pretrained_robodesk):
         "--eval-every", "1000", timeout=600,
     )  # fmt: skip
     assert "GW-Dreamer on robodesk_push_green" in log and "final_success_count" in log
+    assert "push_green is a task it saw" in log  # the tiny GW's data: push_green expert + random
     ck = torch.load(
         tmp / "ck" / "robodesk" / "agents" / "gw_dreamer_gw_robodesk_push_green_s1.pt", weights_only=False
     )
@@ -338,3 +339,16 @@ def test_defaults_follow_the_tables_and_the_cpu_preset():
         k: sum(p.numel() for p in getattr(G.Agent("robodesk", 76, "twohot"), k).parameters()) for k in ("wm",)
     }
     assert 7.0e6 < sizes["wm"] < 8.5e6  # appendix Table "sizes": RoboDesk world model 7.8M
+
+
+def test_attribute_control_feeds_the_true_attributes(pretrained, pretrained_robodesk):
+    ck = pretrained[0] / "ck" / "simple_shapes"
+    enc = G.load_encoder("simple_shapes", ck / "vae.pt", ck / "gw.pt")
+    from envs.simple_shapes import sample_dataset
+
+    obs = sample_dataset(3, seed=0)
+    enc.z_source = "attributes"
+    torch.testing.assert_close(enc(obs), torch.as_tensor(obs["attr"][:, :10]).clamp(-1, 1))
+    rd = str(pretrained_robodesk[0] / "ck")
+    with pytest.raises(ValueError, match="Simple Shapes control"):
+        G.main(G.Args(env="robodesk", checkpoint_dir=rd, z_source="attributes"))

@@ -1,0 +1,116 @@
+"""Scripted RoboDesk experts: way-point controllers that read the simulator state.
+
+The paper collected its RoboDesk pre-training data partly with expert policies (100M-parameter DreamerV3
+agents, section "Unique Global Workspace for all tasks") and notes that demonstrations would serve as well.
+These experts stand in for them: each reads object positions from ``env.unwrapped`` and moves the end
+effector through way-points with a proportional controller on the action's position delta (the env's
+inverse kinematics does the rest), wrist held still.
+
+    from envs.robodesk_experts import EXPERTS
+    env = gymnasium.make("RoboDesk-v0", task="push_green")
+    policy = EXPERTS["push_green"](env, noise=0.1, seed=0)
+    obs, info = env.reset(seed=0)
+    policy.reset()
+    obs, r, term, trunc, info = env.step(policy.act(env))
+
+``noise`` adds Gaussian noise (std in action units) to every action, for more varied data.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import gymnasium as gym
+import numpy as np
+
+STEP = 0.04  # metres the end effector may move per agent step (0.01 per unit action x 4 repeats)
+OPEN, CLOSED = 1.0, -1.0  # gripper action
+
+
+class WaypointExpert:
+    """Follows a list of way-points (position, gripper, tolerance); the list is recomputed from the
+    simulator state at every step, so targets track moving objects. The last way-point is held."""
+
+    def __init__(self, env: gym.Env, plan: Callable, noise: float = 0.0, seed: int | None = None):
+        robodesk = env.unwrapped
+        lo, hi = robodesk.joint_bounds[6]
+        self.wrist_hold = -(lo + hi) / (hi - lo)  # the action whose wrist step is 0
+        self.plan, self.noise = plan, float(noise)
+        self.rng = np.random.default_rng(seed)
+        self.stage = 0
+
+    def reset(self) -> None:
+        self.stage = 0
+
+    def act(self, env: gym.Env) -> np.ndarray:
+        robodesk = env.unwrapped
+        ee = robodesk.data.site_xpos[robodesk._ee_site]
+        waypoints = self.plan(robodesk)
+        target, grip, tol = waypoints[min(self.stage, len(waypoints) - 1)]
+        while self.stage < len(waypoints) - 1 and np.linalg.norm(target - ee) < tol:
+            self.stage += 1
+            target, grip, tol = waypoints[self.stage]
+        action = np.zeros(5)
+        action[:3] = np.clip((target - ee) / STEP, -1.0, 1.0)
+        action[3], action[4] = self.wrist_hold, grip
+        if self.noise:
+            action += self.rng.normal(0.0, self.noise, 5)
+        return np.clip(action, -1.0, 1.0).astype(np.float32)
+
+
+def _button(colour: str):
+    """Above the button, then press it with the closed gripper and hold (the light is on while held).
+    The fingertips are about 5 cm below the end-effector site; a target 3.5 cm above the button presses
+    it without driving the arm into the desk (deeper targets made the arm drift off the red button)."""
+
+    def plan(env):
+        b = env._xpos(f"{colour}_button")
+        return [(b + [0.0, 0.0, 0.12], CLOSED, 0.02), (b + [0.0, 0.0, 0.035], CLOSED, 0.0)]
+
+    return plan
+
+
+def _slide(env):
+    """Behind the left edge of the handle, then push the sliding door to the right (+x)."""
+    h = env.data.site_xpos[env.model.site("slide_handle").id]
+    return [
+        (h + [-0.10, -0.10, 0.0], CLOSED, 0.02),
+        (h + [-0.10, 0.0, 0.0], CLOSED, 0.02),
+        (h + [0.60, 0.0, 0.0], CLOSED, 0.0),
+    ]
+
+
+def _push_off_right(obj: str, height: float):
+    """Beside the object on its left (-x), at ``height`` above its centre, then push it right (+x) past
+    the desk's edge."""
+
+    def plan(env):
+        p = env._xpos(obj)
+        return [
+            (p + [-0.10, 0.0, 0.10], CLOSED, 0.02),
+            (p + [-0.08, 0.0, height], CLOSED, 0.02),
+            (p + [0.30, 0.0, height], CLOSED, 0.0),
+        ]
+
+    return plan
+
+
+PLANS = {
+    "push_green": _button("green"),
+    "push_red": _button("red"),
+    "push_blue": _button("blue"),
+    "open_slide": _slide,
+    "upright_block_off_table": _push_off_right("upright_block", 0.0),
+}
+
+
+def _factory(task: str) -> Callable[..., WaypointExpert]:
+    def make(env: gym.Env, noise: float = 0.0, seed: int | None = None) -> WaypointExpert:
+        if env.unwrapped.task != task:
+            raise ValueError(f"the {task} expert was given a {env.unwrapped.task} environment")
+        return WaypointExpert(env, PLANS[task], noise, seed)
+
+    return make
+
+
+EXPERTS: dict[str, Callable[..., WaypointExpert]] = {task: _factory(task) for task in PLANS}

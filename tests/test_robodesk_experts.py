@@ -1,0 +1,72 @@
+"""Scripted RoboDesk experts (envs/robodesk_experts.py) and the multi-task data they collect with
+pretrain_vae_gw.py: success within an episode, action noise, labelled shards in the asked proportions,
+and the tasks a GW saw recorded in its checkpoint."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from conftest import run_pretrain
+
+import pretrain_vae_gw as P
+from envs.robodesk import RoboDeskEnv
+from envs.robodesk_experts import EXPERTS
+
+
+@pytest.mark.parametrize("task", sorted(EXPERTS))
+def test_each_expert_succeeds_within_an_episode(task):
+    env = RoboDeskEnv(task=task, render_images=False)
+    env.reset(seed=0)
+    policy = EXPERTS[task](env)
+    successes = 0
+    for _ in range(500):
+        _, _, _, trunc, info = env.step(policy.act(env))
+        successes += info["success"]
+    assert trunc and successes > 50, successes  # measured on seed 0: 139 (open_slide) to 441 (push_blue)
+
+
+def test_experts_work_through_gymnasium_wrappers_and_add_seeded_noise():
+    env = gym.make("RoboDesk-v0", task="push_blue", render_quality="fast")
+    env.reset(seed=3)
+    plain = EXPERTS["push_blue"](env)
+    a, b = EXPERTS["push_blue"](env, noise=0.2, seed=7), EXPERTS["push_blue"](env, noise=0.2, seed=7)
+    act_plain, act_a, act_b = plain.act(env), a.act(env), b.act(env)
+    assert np.array_equal(act_a, act_b) and not np.array_equal(act_a, act_plain)
+    assert act_a.shape == (5,) and np.all(np.abs(act_a) <= 1)
+    env.close()
+    with pytest.raises(ValueError, match="push_green expert was given a push_blue environment"):
+        EXPERTS["push_green"](env)
+
+
+def test_collection_plan_follows_the_paper_proportions():
+    one = P.robodesk_plan(P.Args(env="robodesk").resolve(), 2_000_000)  # 1M expert + 1M random
+    assert one == [("expert", "push_green", 1_000_000), ("random", "push_green", 1_000_000)]
+    tasks = ("push_green", "push_red", "push_blue", "open_slide", "upright_block_off_table")
+    many = P.robodesk_plan(P.Args(env="robodesk", tasks=tasks).resolve(), 600)  # equal shares, random one
+    assert [n for _, _, n in many] == [100] * 6 and many[-1][0] == "random"
+    with pytest.raises(ValueError, match="no scripted expert for 'lift_ball'"):
+        P.robodesk_plan(P.Args(env="robodesk", tasks=("lift_ball",)), 10)
+    with pytest.raises(ValueError, match="unknown RoboDesk task 'fly'"):
+        P.robodesk_plan(P.Args(env="robodesk", tasks=("fly",)), 10)
+
+
+def test_collector_mixes_sources_and_labels_every_sample(tmp_path):
+    args = ["--env", "robodesk", "--stages", "collect", "--tasks", "push_green", "open_slide",
+            "--render-quality", "fast", "--shard-size", "25"]  # fmt: skip
+    log = run_pretrain(tmp_path, *args, "--n-samples", "60")
+    assert "20 expert (push_green), 20 expert (open_slide), 20 random" in log
+    folder = tmp_path / "data" / "robodesk"
+    assert [len(np.load(p)["attr"]) for p in P.shard_paths(folder)] == [25, 25, 10]
+    assert P.label_counts(folder) == {"expert/open_slide": 20, "expert/push_green": 20, "random/": 20}
+    run_pretrain(tmp_path, *args, "--n-samples", "90")  # appending keeps the proportions
+    assert P.label_counts(folder) == {"expert/open_slide": 30, "expert/push_green": 30, "random/": 30}
+    sources, tasks = P.load_labels(folder)
+    images, attrs = P.load_data(folder, "robodesk")
+    assert len(sources) == len(tasks) == len(images) == len(attrs) == 90
+    # Expert samples start from reset states and then follow the expert: they differ from random ones.
+    assert set(np.unique(tasks[sources == "expert"])) == {"push_green", "open_slide"}
+
+
+def test_gw_checkpoint_records_the_tasks_it_saw(pretrained_robodesk):
+    ck = torch.load(pretrained_robodesk[0] / "ck" / "robodesk" / "gw.pt", weights_only=False)
+    assert ck["data"]["samples_per_source_and_task"] == {"expert/push_green": 20, "random/": 20}
