@@ -231,7 +231,7 @@ def shard_paths(folder: Path) -> list[Path]:
     return sorted(folder.glob("shard_*.npz"))
 
 
-def write_shard(folder: Path, image: np.ndarray, attr: np.ndarray, source, task) -> Path:
+def write_shard(folder: Path, image: np.ndarray, attr: np.ndarray, source, task="") -> Path:
     """One compressed shard; ``source`` ("random" / "expert") and ``task`` label every sample (a single
     string labels them all)."""
     folder.mkdir(parents=True, exist_ok=True)

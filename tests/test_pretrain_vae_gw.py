@@ -37,7 +37,7 @@ def test_all_stages_run_through_the_cli(trained):
 
 def test_robodesk_stages_on_tiny_data(pretrained_robodesk):
     tmp, log = pretrained_robodesk
-    assert "RANDOM-policy RoboDesk data only" in log
+    assert "RoboDesk data: 20 expert (push_green), 20 random (push_green)" in log
     ck = torch.load(tmp / "ck" / "robodesk" / "gw.pt", weights_only=False)
     assert ck["config"]["z"] == 76 and ck["gw"]["e.v.0.weight"].shape == (512, 40)
 
