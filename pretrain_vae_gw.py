@@ -59,9 +59,9 @@ class Args:
     device: str = "cuda" if torch.cuda.is_available() else "cpu"
     """torch device"""
     cpu_preset: bool = False
-    """small settings that give a usable Simple Shapes GW on a 2-core CPU in about 15 minutes
+    """small settings that give a usable Simple Shapes GW on a 2-core CPU in about 25 minutes
     (60k samples; VAE width 64, 5,000 steps of batch 128, beta_attr 0.005 with 4 attribute updates
-    per step; 15,000 GW steps of batch 256); flags left at their paper default take the preset's value"""
+    per step; 60,000 GW steps of batch 256); flags left at their paper default take the preset's value"""
 
     # collect
     n_samples: int | None = None
@@ -164,7 +164,7 @@ CPU_PRESET = {
     "vae_lr_start_end": 1e-3,
     "beta_attr": 0.005,
     "attr_updates_per_step": 4,
-    "gw_steps": 15_000,
+    "gw_steps": 60_000,
     "gw_batch_size": 256,
 }
 
