@@ -857,10 +857,10 @@ def main(args: Args) -> dict:
                 "--z-source attributes is a Simple Shapes control (RoboDesk attributes are unbounded)"
             )
         encoder.z_source = "attributes"
-        args.exp_name += "_attrz"
     model_name = "gw" if encoder.preset == "gw" else "clip"  # GW-Dreamer or CLIP-Dreamer
     task = "" if args.env == "simple_shapes" else f"_{args.task}"
-    run_name = f"{args.exp_name}_{model_name}_{args.env}{task}_s{args.seed}"
+    control = "_attrz" if args.z_source == "attributes" else ""  # the control's runs stay apart
+    run_name = f"{args.exp_name}_{model_name}{control}_{args.env}{task}_s{args.seed}"
     agent_path = Path(args.checkpoint) if args.checkpoint else ck_root / "agents" / f"{run_name}.pt"
     fingerprint = gw_fingerprint(encoder)
 

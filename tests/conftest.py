@@ -28,6 +28,12 @@ def run_script(script: str, cwd: Path, *args: str, timeout: int = 300) -> str:
     return out.stdout
 
 
+def tiny_agent_args(module, pretrained, **kw):
+    """``module.Args`` (gw_dreamer or gw_dreamer_e2e) with small batches on the ``pretrained`` checkpoints."""
+    base = dict(checkpoint_dir=str(pretrained[0] / "ck"), learning_starts=50, batch_size=4, batch_length=8)
+    return module.Args(**(base | kw)).resolve()
+
+
 def run_pretrain(tmp_path: Path, *extra: str) -> str:
     """pretrain_vae_gw.py with tiny settings, data in tmp_path/data and checkpoints in tmp_path/ck."""
     paths = ["--data-dir", str(tmp_path / "data"), "--checkpoint-dir", str(tmp_path / "ck")]

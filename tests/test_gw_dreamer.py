@@ -8,7 +8,7 @@ import pytest
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
-from conftest import run_script
+from conftest import run_script, tiny_agent_args
 
 import gw_dreamer as G
 
@@ -20,8 +20,7 @@ TINY = [
 
 
 def ss_args(pretrained, **kw) -> G.Args:
-    base = dict(checkpoint_dir=str(pretrained[0] / "ck"), learning_starts=50, batch_size=4, batch_length=8)
-    return G.Args(**(base | kw)).resolve()
+    return tiny_agent_args(G, pretrained, **kw)
 
 
 @pytest.fixture(scope="module")

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import run_script
+from conftest import run_script, tiny_agent_args
 
 import gw_dreamer_e2e as E
 import pretrain_vae_gw as P
@@ -21,8 +21,7 @@ AGENT = "gw_dreamer_e2e_gw_simple_shapes_s1.pt"
 
 
 def ss_args(pretrained, **kw) -> E.Args:
-    base = dict(checkpoint_dir=str(pretrained[0] / "ck"), learning_starts=50, batch_size=4, batch_length=8)
-    return E.Args(**(base | kw)).resolve()
+    return tiny_agent_args(E, pretrained, **kw)
 
 
 @pytest.fixture(scope="module")
