@@ -1,0 +1,1311 @@
+"""DreamerV3 baseline and VAE-Dreamer: the paper's Dreamer comparison agents in one file.
+
+Paper: section "Dreamer details" (tables "Architecture details used in Dreamer baseline" and
+"Hyperparameters used during Dreamer training"); the method is DreamerV3 (Hafner et al. 2023), written
+here from that paper's description in PyTorch.
+
+    python dreamer_baseline.py --env simple_shapes                      # Dreamer 2M, raw observations
+    python dreamer_baseline.py --env simple_shapes --obs vae            # VAE-Dreamer
+    python dreamer_baseline.py --env robodesk --task push_green         # Dreamer 12M
+    python dreamer_baseline.py --env robodesk --task push_green --size 40m
+    python dreamer_baseline.py --env simple_shapes --eval-only --checkpoint PATH --drop vision  # ablation
+
+World model: an RSSM with a deterministic GRU state h_t (``deter``) and a stochastic state of 32
+categorical variables with 32 classes each (1% uniform mix), encoders of the image (CNN) and attribute
+vector (MLP on symlog inputs), decoders of both, a 255-bin two-hot reward head and a continue head, trained
+with KL balancing and free bits. The actor-critic learns in imagination (horizon 15, lambda-returns,
+percentile return normalisation, slow critic). ``--obs vae`` replaces the raw observation by the
+concatenated frozen VAE means [u_v, u_attr] of pretrain_vae_gw.py, encoded and decoded as one vector.
+
+The saved policy doubles as a RoboDesk data-collection expert: every checkpoint is accompanied by
+``<checkpoint>.policy.pt2``, a self-contained ``torch.export`` program (observation -> action, with its
+recurrent state) that ``pretrain_vae_gw.py --expert-checkpoint`` runs without importing this file.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import os
+import random
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Literal
+
+import gymnasium as gym
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+import tyro
+from torch.utils.flop_counter import FlopCounterMode
+from torch.utils.tensorboard import SummaryWriter
+
+import envs  # noqa: F401  (registers the environments)
+from envs.simple_shapes import reference_returns as ss_reference_returns
+
+
+@dataclass
+class Args:
+    env: Literal["simple_shapes", "robodesk"] = "simple_shapes"
+    """environment"""
+    task: str = "push_green"
+    """RoboDesk task (ignored for Simple Shapes)"""
+    obs: Literal["raw", "vae"] = "raw"
+    """raw: image + attributes (Dreamer); vae: the frozen VAE means [u_v, u_attr] as one vector
+    (the paper's VAE-Dreamer)"""
+    size: Literal["2m", "12m", "40m"] | None = None
+    """model size of the paper's table (default 2m Simple Shapes, 12m RoboDesk)"""
+    seed: int = 1
+    """seed of the environments, the networks and the replay sampling"""
+    exp_name: str = "dreamer"
+    """run name prefix: runs/<exp_name>_<obs>_<size>_<env>[_<task>]_s<seed>"""
+    device: str = "cuda" if torch.cuda.is_available() else "cpu"
+    """torch device"""
+    torch_threads: int = 0
+    """torch CPU threads (0: torch's default)"""
+
+    # network sizes beyond the table's (tests and quick CPU runs; None: the size's value)
+    deter: int | None = None
+    """GRU recurrent units (deterministic state h_t)"""
+    hidden: int | None = None
+    """RSSM hidden dimension (the layers around the GRU and the prior/posterior)"""
+    units: int | None = None
+    """dense hidden units of the encoders, decoders, heads, actor and critic"""
+    cnn_depth: int | None = None
+    """channels of the first image-encoder convolution (doubled per stage)"""
+    layers: int | None = None
+    """hidden layers of every MLP"""
+    classes: int | None = None
+    """classes of each of the 32 categorical latents"""
+
+    # frozen VAEs (--obs vae)
+    checkpoint_dir: str = "checkpoints"
+    """where pretrain_vae_gw.py wrote <env>/vae.pt; agent checkpoints go to <env>/agents/"""
+    vae_checkpoint: str | None = None
+    """VAE checkpoint for --obs vae (default <checkpoint_dir>/<env>/vae.pt)"""
+
+    # training (appendix Table "Hyperparameters used during Dreamer training")
+    total_steps: int | None = None
+    """environment steps (default 400,000 Simple Shapes, 1,000,000 RoboDesk)"""
+    num_envs: int = 1
+    """environments stepped together"""
+    learning_starts: int = 1_000
+    """random-policy steps that fill the replay buffer before the first update"""
+    buffer_size: int = 1_000_000
+    """replay capacity in transitions (memory is only touched as it fills)"""
+    batch_size: int = 16
+    """replayed sequences per update"""
+    batch_length: int = 65
+    """entries per replayed sequence"""
+    train_ratio: float = 32.0
+    """replayed steps per environment step (DreamerV3's meaning): one update of batch_size x
+    batch_length replayed steps every batch_size x batch_length / train_ratio environment steps"""
+    imag_horizon: int = 15
+    """imagined steps per rollout"""
+    wm_lr: float | None = None
+    """world-model Adam learning rate (default 1e-3 Simple Shapes, 3e-4 RoboDesk)"""
+    ac_lr: float = 3e-4
+    """actor and critic Adam learning rate"""
+    kl_free: float = 1.0
+    """free nats of each KL term (DreamerV3)"""
+    kl_dyn: float = 0.5
+    """weight of the dynamics KL, KL(sg(posterior) || prior)"""
+    kl_rep: float = 0.1
+    """weight of the representation KL, KL(posterior || sg(prior))"""
+    unimix: float = 0.01
+    """uniform mix of the latent and discrete-action categoricals"""
+    gamma: float = 1 - 1 / 333
+    """discount (DreamerV3)"""
+    lam: float = 0.95
+    """lambda of the lambda-returns"""
+    entropy_coef: float = 3e-4
+    """actor entropy regulariser (DreamerV3)"""
+    slow_critic_decay: float = 0.98
+    """EMA decay of the slow critic that regularises the critic (DreamerV3)"""
+    return_norm_decay: float = 0.99
+    """EMA decay of the return scale max(1, P95 - P5) (DreamerV3)"""
+    actor_grad: Literal["auto", "reinforce", "dynamics"] = "auto"
+    """actor gradient: REINFORCE (discrete actions) or backpropagation through the imagined dynamics
+    (continuous actions), as DreamerV3; auto picks by the action space"""
+
+    # environments
+    render_quality: Literal["faithful", "fast"] = "faithful"
+    """RoboDesk image quality (fast: CPU experiments only, see the README)"""
+    episode_length: int = 2000
+    """RoboDesk episode length in physics-control repeats (paper: 2000, i.e. 500 agent steps)"""
+
+    # evaluation, logging, checkpoints
+    eval_every: int = 10_000
+    """environment steps between evaluations"""
+    eval_episodes: int = 10
+    """episodes per evaluation (and for --eval-only)"""
+    criterion: float = 0.75
+    """normalised return that defines the return criterion (Simple Shapes)"""
+    smoothing: int = 10
+    """training episodes in the sliding window of the smoothed return (paper: 10)"""
+    video_every: int = 50_000
+    """environment steps between dream filmstrips (raw observations; 0: only at the end)"""
+    log_every: int = 1_000
+    """environment steps between TensorBoard scalars and progress lines"""
+    save_every: int = 20_000
+    """environment steps between resumable checkpoints"""
+    resume: bool = False
+    """continue the run stored at --checkpoint (default: this run's agent checkpoint)"""
+    checkpoint: str | None = None
+    """agent checkpoint (default <checkpoint_dir>/<env>/agents/<run name>.pt)"""
+    eval_only: bool = False
+    """only evaluate --checkpoint (the modality ablation with --drop) and exit"""
+    drop: Literal["none", "vision", "attr"] = "none"
+    """modality removed at evaluation: its input is zeroed (the image, or u_v for --obs vae)"""
+
+    def resolve(self) -> Args:
+        """Per-environment defaults of the tables, then the size's network widths."""
+        ss = self.env == "simple_shapes"
+        for name, ss_value, rd_value in [
+            ("total_steps", 400_000, 1_000_000),
+            ("wm_lr", 1e-3, 3e-4),
+            ("size", "2m", "12m"),
+        ]:
+            if getattr(self, name) is None:
+                setattr(self, name, ss_value if ss else rd_value)
+        for name, value in MODEL_SIZES[self.size].items():
+            if getattr(self, name) is None:
+                setattr(self, name, value)
+        if self.deter % BLOCKS:
+            raise ValueError(f"--deter must be a multiple of the GRU's {BLOCKS} blocks, got {self.deter}")
+        return self
+
+
+# Appendix table "Architecture details used in Dreamer baseline": GRU recurrent units (deter), dense hidden
+# units (units), RSSM hidden dimension (hidden) and the total size. The table does not give the CNN depth,
+# the MLP depth or the latent classes; they are chosen so that the printed total matches the table's
+# within 10% (tested). The totals also fix two readings:
+# - the recurrent core is DreamerV3's block-diagonal GRU (8 blocks): a dense GRU of 4,096 units alone has
+#   over 55M weights, more than the 40M model;
+# - 32 latents of 32 classes (2023 DreamerV3) fit 40M, but at 12M the heads reading [h, z] would alone
+#   push the total past 13.2M, so the smaller models use 16 classes, as DreamerV3's own 12M preset does.
+MODEL_SIZES = {
+    "2m": {"deter": 512, "hidden": 128, "units": 128, "cnn_depth": 8, "layers": 1, "classes": 16},
+    "12m": {"deter": 2048, "hidden": 384, "units": 256, "cnn_depth": 4, "layers": 1, "classes": 16},
+    "40m": {"deter": 4096, "hidden": 384, "units": 512, "cnn_depth": 8, "layers": 2, "classes": 32},
+}
+TABLE_TOTALS = {"2m": 2e6, "12m": 12e6, "40m": 40e6}
+BLOCKS = 8  # blocks of the block-diagonal GRU
+STOCH = 32  # categorical latents (DreamerV3); their class count is a size setting
+ENV_SPECS = {  # must agree with envs/ and pretrain_vae_gw.py
+    "simple_shapes": {"image": 32, "attr": 11, "latent": 10, "actions": 7},
+    "robodesk": {"image": 64, "attr": 76, "latent": 40, "actions": 5},
+}
+PRETRAIN = "python pretrain_vae_gw.py --env {env}"
+
+
+# --------------------------------------------------------------------------------------------------
+# Frozen VAEs of pretrain_vae_gw.py (--obs vae): same layers, so the same weights load
+# --------------------------------------------------------------------------------------------------
+def conv_block(cin: int, cout: int, transpose: bool = False, stride: int = 2) -> nn.Sequential:
+    conv = (nn.ConvTranspose2d if transpose else nn.Conv2d)(
+        cin, cout, 4 if stride == 2 else 3, stride, 1, bias=False
+    )
+    return nn.Sequential(conv, nn.BatchNorm2d(cout), nn.ReLU())
+
+
+class VisualVAE(nn.Module):
+    """Appendix Tables VAE_v (the encoder's mean u_v is the observation of VAE-Dreamer)."""
+
+    def __init__(self, image: int, latent: int, width: int = 1024):
+        super().__init__()
+        n_down = int(np.log2(image)) - 1
+        chans = [width // 2 ** (n_down - 1 - i) for i in range(n_down)]
+        layers, cin = [], 3
+        for c in chans:
+            layers.append(conv_block(cin, c))
+            cin = c
+        self.encoder = nn.Sequential(*layers, nn.Flatten())
+        self.q = nn.Linear(width * 4, 2 * latent)
+        n_up = int(np.log2(image // 8))
+        up = [width // 2 ** (i + 1) for i in range(n_up)] + [width // 2**n_up]
+        self.fc = nn.Linear(latent, 8 * 8 * width)
+        dec, cin = [], width
+        for i, c in enumerate(up):
+            dec.append(conv_block(cin, c, transpose=True, stride=2 if i < n_up else 1))
+            cin = c
+        self.decoder = nn.Sequential(*dec, nn.Conv2d(cin, 3, 3, 1, 1), nn.Sigmoid())
+
+    def encode_mean(self, x: torch.Tensor) -> torch.Tensor:
+        return self.q(self.encoder(x)).chunk(2, dim=-1)[0]
+
+
+class AttrVAE(nn.Module):
+    """Appendix Tables VAE_attr (only the encoder's mean u_attr is used here)."""
+
+    def __init__(self, attr: int, latent: int, hidden: int, depth: int):
+        super().__init__()
+        enc, cin = [], attr
+        for _ in range(depth):
+            enc += [nn.Linear(cin, hidden), nn.ReLU()]
+            cin = hidden
+        self.encoder = nn.Sequential(
+            *enc, nn.Linear(hidden, latent), nn.ReLU(), nn.Linear(latent, 2 * latent)
+        )
+        dec, cin = [], latent
+        for _ in range(depth):
+            dec += [nn.Linear(cin, hidden), nn.ReLU()]
+            cin = hidden
+        self.decoder = nn.Sequential(*dec, nn.Linear(hidden, attr))
+
+    def encode_mean(self, a: torch.Tensor) -> torch.Tensor:
+        return self.encoder(a).chunk(2, dim=-1)[0]
+
+
+def load_vae(path: Path, env: str) -> dict:
+    make = PRETRAIN.format(env=env) + " --stages collect vae"
+    if not path.is_file():
+        raise FileNotFoundError(f"no vae checkpoint at {path}; --obs vae needs one: make it with `{make}`")
+    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    if ckpt.get("kind") != "vae":
+        raise ValueError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected 'vae'")
+    if ckpt.get("env") != env:
+        raise ValueError(
+            f"{path} was made for env {ckpt.get('env')!r}, but this run is for env {env!r}; "
+            f"make a matching one with `{make}`"
+        )
+    return ckpt
+
+
+class Observer(nn.Module):
+    """Environment observation -> the agent's observation dict, with a modality optionally zeroed.
+
+    raw: {"image": uint8 (n, H, W, 3), "attr": (n, A)}; vae: {"x": [u_v, u_attr]} from the frozen VAEs.
+    It is part of the exported policy, so a VAE-Dreamer expert also reads raw observations."""
+
+    def __init__(self, env: str, kind: str, vae: dict | None):
+        super().__init__()
+        self.kind = kind
+        s = ENV_SPECS[env]
+        if kind == "vae":
+            self.vae_v = VisualVAE(s["image"], s["latent"], vae["config"]["vae_width"])
+            depth, hidden = (2, 64) if env == "simple_shapes" else (4, 512)
+            self.vae_attr = AttrVAE(s["attr"], s["latent"], hidden, depth)
+            try:
+                self.vae_v.load_state_dict(vae["vae_v"])
+                self.vae_attr.load_state_dict(vae["vae_attr"])
+            except RuntimeError as err:
+                raise ValueError(f"the VAE checkpoint does not fit the {env} networks: {err}") from err
+            self.register_buffer("attr_mean", torch.as_tensor(vae["attr_mean"], dtype=torch.float32))
+            self.register_buffer("attr_std", torch.as_tensor(vae["attr_std"], dtype=torch.float32))
+        self.eval().requires_grad_(False)
+
+    def spaces(self, env: str) -> dict[str, tuple[int, ...]]:
+        s = ENV_SPECS[env]
+        if self.kind == "raw":
+            return {"image": (s["image"], s["image"], 3), "attr": (s["attr"],)}
+        return {"x": (2 * s["latent"],)}
+
+    @torch.no_grad()
+    def forward(self, image: torch.Tensor, attr: torch.Tensor, drop: str = "none") -> dict[str, torch.Tensor]:
+        if self.kind == "raw":
+            return {"image": image * (drop != "vision"), "attr": attr * (drop != "attr")}
+        u_v = self.vae_v.encode_mean(image.permute(0, 3, 1, 2).float() / 255.0)
+        u_attr = self.vae_attr.encode_mean((attr - self.attr_mean) / self.attr_std)
+        return {"x": torch.cat([u_v * (drop != "vision"), u_attr * (drop != "attr")], -1)}
+
+
+# --------------------------------------------------------------------------------------------------
+# Symlog and two-hot (DreamerV3): rewards and values as 255-bin distributions over symlog(y)
+# --------------------------------------------------------------------------------------------------
+def symlog(x: torch.Tensor) -> torch.Tensor:
+    return torch.sign(x) * torch.log1p(x.abs())
+
+
+def symexp(x: torch.Tensor) -> torch.Tensor:
+    return torch.sign(x) * torch.expm1(x.abs())
+
+
+class TwoHot(nn.Module):
+    """Bins evenly spaced on symlog values in [-20, 20]."""
+
+    def __init__(self, n_bins: int = 255, low: float = -20.0, high: float = 20.0):
+        super().__init__()
+        self.register_buffer("bins", torch.linspace(low, high, n_bins))
+
+    def encode(self, y: torch.Tensor) -> torch.Tensor:
+        """Targets y (...,) -> two-hot weights (..., n_bins) on the bins around symlog(y)."""
+        x = symlog(y).clamp(self.bins[0], self.bins[-1])
+        hi = torch.searchsorted(self.bins, x.contiguous(), right=True).clamp(1, len(self.bins) - 1)
+        lo = hi - 1
+        w_hi = (x - self.bins[lo]) / (self.bins[hi] - self.bins[lo])
+        out = torch.zeros(*x.shape, len(self.bins), device=x.device)
+        out.scatter_(-1, lo.unsqueeze(-1), (1 - w_hi).unsqueeze(-1))
+        out.scatter_add_(-1, hi.unsqueeze(-1), w_hi.unsqueeze(-1))
+        return out
+
+    def mean(self, logits: torch.Tensor) -> torch.Tensor:
+        """Expected value: symexp of the softmax-weighted bin."""
+        return symexp((logits.softmax(-1) * self.bins).sum(-1))
+
+    def loss(self, logits: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """Cross-entropy to the two-hot target of y, per element."""
+        return -(self.encode(y) * logits.log_softmax(-1)).sum(-1)
+
+
+# --------------------------------------------------------------------------------------------------
+# Networks (DreamerV3: LayerNorm + SiLU everywhere)
+# --------------------------------------------------------------------------------------------------
+def dense(cin: int, cout: int) -> nn.Sequential:
+    return nn.Sequential(nn.Linear(cin, cout, bias=False), nn.LayerNorm(cout), nn.SiLU())
+
+
+def mlp(cin: int, units: int, cout: int, layers: int, zero_out: bool = False) -> nn.Sequential:
+    hidden = [dense(cin if i == 0 else units, units) for i in range(layers)]
+    out = nn.Linear(units if layers else cin, cout)
+    if zero_out:  # reward and critic start predicting 0 (DreamerV3)
+        nn.init.zeros_(out.weight)
+        nn.init.zeros_(out.bias)
+    return nn.Sequential(*hidden, out)
+
+
+class ChannelNorm(nn.Module):
+    """LayerNorm over the channels of an image tensor (N, C, H, W)."""
+
+    def __init__(self, c: int):
+        super().__init__()
+        self.norm = nn.LayerNorm(c)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.norm(x.permute(0, 2, 3, 1)).permute(0, 3, 1, 2)
+
+
+def cnn_channels(image: int, depth: int) -> list[int]:
+    """Stride-2 stages down to 4x4 pixels, channels doubling from ``depth``."""
+    return [depth * 2**i for i in range(int(np.log2(image // 4)))]
+
+
+class Encoder(nn.Module):
+    """Image -> CNN (kernel 4, stride 2) features; vector (attributes or [u_v, u_attr]) -> MLP on its
+    symlog; the embedding is their concatenation."""
+
+    def __init__(self, spaces: dict[str, tuple[int, ...]], depth: int, units: int, layers: int):
+        super().__init__()
+        self.image_key = "image" if "image" in spaces else None
+        self.vec_keys = [k for k in spaces if k != "image"]
+        self.out_dim = 0
+        if self.image_key:
+            size = spaces["image"][0]
+            convs, cin = [], 3
+            for c in cnn_channels(size, depth):
+                convs += [nn.Conv2d(cin, c, 4, 2, 1, bias=False), ChannelNorm(c), nn.SiLU()]
+                cin = c
+            self.cnn = nn.Sequential(*convs, nn.Flatten())
+            self.out_dim += cin * 16
+        vec = sum(spaces[k][0] for k in self.vec_keys)
+        self.mlp = nn.Sequential(*[dense(vec if i == 0 else units, units) for i in range(layers)])
+        self.out_dim += units
+
+    def forward(self, obs: dict[str, torch.Tensor]) -> torch.Tensor:
+        lead = obs[self.vec_keys[0]].shape[:-1]
+        parts = []
+        if self.image_key:
+            img = obs["image"].reshape(-1, *obs["image"].shape[-3:]).permute(0, 3, 1, 2).float() / 255.0 - 0.5
+            parts.append(self.cnn(img).reshape(*lead, -1))
+        vec = torch.cat([obs[k].float() for k in self.vec_keys], -1)
+        parts.append(self.mlp(symlog(vec)))
+        return torch.cat(parts, -1)
+
+
+class Decoder(nn.Module):
+    """Features -> image (transposed CNN, mean of a unit Gaussian on pixels - 0.5) and vector (MLP,
+    symlog targets)."""
+
+    def __init__(self, spaces: dict[str, tuple[int, ...]], feat: int, depth: int, units: int, layers: int):
+        super().__init__()
+        self.spaces = spaces
+        self.image_key = "image" if "image" in spaces else None
+        self.vec_keys = [k for k in spaces if k != "image"]
+        if self.image_key:
+            chans = cnn_channels(spaces["image"][0], depth)[::-1]
+            self.c0 = chans[0]
+            self.fc = nn.Linear(feat, chans[0] * 16)
+            ups = []
+            for cin, cout in zip(chans, chans[1:], strict=False):
+                ups += [nn.ConvTranspose2d(cin, cout, 4, 2, 1, bias=False), ChannelNorm(cout), nn.SiLU()]
+            self.up = nn.Sequential(*ups, nn.ConvTranspose2d(chans[-1], 3, 4, 2, 1))
+        vec = sum(spaces[k][0] for k in self.vec_keys)
+        self.mlp = mlp(feat, units, vec, layers)
+
+    def loss(self, feat: torch.Tensor, obs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """Negative log-likelihoods (summed squared errors) per entry, one per modality."""
+        out = {}
+        if self.image_key:
+            target = obs["image"].permute(0, 1, 4, 2, 3).float() / 255.0 - 0.5  # (B, T, 3, H, W)
+            pred = self.image(feat)
+            out["image"] = ((pred - target) ** 2).sum((-3, -2, -1))
+        vec = torch.cat([obs[k].float() for k in self.vec_keys], -1)
+        out["vector"] = ((self.mlp(feat) - symlog(vec)) ** 2).sum(-1)
+        return out
+
+    def image(self, feat: torch.Tensor) -> torch.Tensor:
+        """Decoded image in [-0.5, 0.5] units, (..., 3, H, W)."""
+        x = self.fc(feat.reshape(-1, feat.shape[-1])).view(-1, self.c0, 4, 4)
+        x = self.up(x)
+        return x.reshape(*feat.shape[:-1], *x.shape[1:])
+
+
+class BlockLinear(nn.Module):
+    """``blocks`` independent linear maps, (..., blocks, cin) -> (..., blocks, cout)."""
+
+    def __init__(self, blocks: int, cin: int, cout: int):
+        super().__init__()
+        self.weight = nn.Parameter(torch.empty(blocks, cin, cout))
+        self.bias = nn.Parameter(torch.zeros(blocks, cout))
+        nn.init.uniform_(self.weight, -1 / math.sqrt(cin), 1 / math.sqrt(cin))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return torch.einsum("...gi,gio->...go", x, self.weight) + self.bias
+
+
+class RSSM(nn.Module):
+    """Recurrent state-space model: h_t = GRU(h_{t-1}, z_{t-1}, a_{t-1}); prior p(z_t | h_t); posterior
+    q(z_t | h_t, embed(o_t)); z_t is 32 one-hot categoricals of 32 classes."""
+
+    def __init__(self, embed: int, actions: int, deter: int, hidden: int, classes: int, unimix: float):
+        super().__init__()
+        self.deter, self.classes, self.unimix, self.g = deter, classes, unimix, BLOCKS
+        self.stoch = STOCH * classes
+        self.dynin = nn.ModuleList([dense(deter, hidden), dense(self.stoch, hidden), dense(actions, hidden)])
+        self.dynhid = BlockLinear(BLOCKS, deter // BLOCKS + 3 * hidden, deter // BLOCKS)
+        self.dynnorm = nn.LayerNorm(deter)
+        self.dyngru = BlockLinear(BLOCKS, deter // BLOCKS, 3 * deter // BLOCKS)
+        self.prior = nn.Sequential(dense(deter, hidden), nn.Linear(hidden, self.stoch))
+        self.post = nn.Sequential(dense(deter + embed, hidden), nn.Linear(hidden, self.stoch))
+
+    def initial(self, n: int, dev) -> tuple[torch.Tensor, torch.Tensor]:
+        return torch.zeros(n, self.deter, device=dev), torch.zeros(n, self.stoch, device=dev)
+
+    def core(self, deter: torch.Tensor, stoch: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Block-diagonal GRU step (DreamerV3): each of the 8 blocks of h sees its own slice of h and all of
+        the mixed inputs; update gate biased toward keeping h (sigmoid(u - 1))."""
+        n, g = deter.shape[0], self.g
+        action = action / action.abs().clamp(min=1).detach()
+        x = torch.cat([self.dynin[0](deter), self.dynin[1](stoch), self.dynin[2](action)], -1)
+        x = torch.cat([deter.view(n, g, -1), x.unsqueeze(1).expand(n, g, x.shape[-1])], -1)
+        x = F.silu(self.dynnorm(self.dynhid(x).reshape(n, -1))).view(n, g, -1)
+        reset, cand, update = [y.reshape(n, -1) for y in self.dyngru(x).chunk(3, -1)]
+        cand = torch.tanh(torch.sigmoid(reset) * cand)
+        update = torch.sigmoid(update - 1)
+        return update * cand + (1 - update) * deter
+
+    def probs(self, logits: torch.Tensor) -> torch.Tensor:
+        """Class probabilities with the 1% uniform mix, (..., 32, 32)."""
+        p = logits.unflatten(-1, (STOCH, self.classes)).softmax(-1)
+        return (1 - self.unimix) * p + self.unimix / self.classes
+
+    def sample(self, logits: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
+        """One-hot samples with straight-through gradients, flattened to (..., 1024). ``noise``: uniform
+        numbers for Gumbel-max sampling (the exported policy gets its randomness as an input)."""
+        p = self.probs(logits)
+        if noise is None:
+            noise = torch.rand_like(p)
+        gumbel = -torch.log(-torch.log(noise.clamp(1e-9, 1 - 1e-7)))
+        one_hot = F.one_hot((p.log() + gumbel).argmax(-1), self.classes).to(p.dtype)
+        return (one_hot + p - p.detach()).flatten(-2)
+
+    def img_step(self, deter, stoch, action):
+        deter = self.core(deter, stoch, action)
+        return deter, self.sample(self.prior(deter))
+
+    def obs_step(self, deter, stoch, action, embed, first, noise=None):
+        """One filtering step; ``first`` (n,) restarts the state and previous action at an episode start."""
+        keep = (1 - first).unsqueeze(-1)
+        deter = self.core(deter * keep, stoch * keep, action * keep)
+        prior_logits = self.prior(deter)
+        post_logits = self.post(torch.cat([deter, embed], -1))
+        return deter, self.sample(post_logits, noise), post_logits, prior_logits
+
+    def kl(self, post_logits: torch.Tensor, prior_logits: torch.Tensor) -> torch.Tensor:
+        """KL(post || prior) summed over the 32 latents."""
+        p, q = self.probs(post_logits), self.probs(prior_logits)
+        return (p * (p.log() - q.log())).sum((-2, -1))
+
+
+class Actor(nn.Module):
+    """Discrete: categorical with 1% uniform mix. Continuous: Gaussian with tanh mean and std in [0.1, 1],
+    samples clipped to the action box (DreamerV3)."""
+
+    def __init__(self, feat: int, units: int, layers: int, n_actions: int, discrete: bool, unimix: float):
+        super().__init__()
+        self.discrete, self.n, self.unimix = discrete, n_actions, unimix
+        self.net = mlp(feat, units, n_actions if discrete else 2 * n_actions, layers)
+
+    def params(self, feat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Class probabilities (discrete) or Gaussian mean and std (continuous)."""
+        out = self.net(feat)
+        if self.discrete:
+            return (1 - self.unimix) * out.softmax(-1) + self.unimix / self.n, None
+        mean, std = out.chunk(2, -1)
+        return torch.tanh(mean), 0.9 * torch.sigmoid(std + 2.0) + 0.1
+
+    def dist(self, feat: torch.Tensor) -> torch.distributions.Distribution:
+        a, b = self.params(feat)
+        if self.discrete:
+            return torch.distributions.Categorical(probs=a)
+        return torch.distributions.Independent(torch.distributions.Normal(a, b), 1)
+
+    def act(self, feat: torch.Tensor, mode: bool = False, noise: torch.Tensor | None = None) -> torch.Tensor:
+        """One-hot (discrete) or a vector in [-1, 1]. ``noise``: uniform (discrete, Gumbel-max) or
+        standard normal (continuous) numbers given from outside (the exported policy); without it the
+        sample is drawn here (reparameterised for continuous actions)."""
+        probs, std = self.params(feat)
+        if self.discrete:
+            if mode:
+                return F.one_hot(probs.argmax(-1), self.n).float()
+            if noise is None:
+                noise = torch.rand_like(probs)
+            gumbel = -torch.log(-torch.log(noise.clamp(1e-9, 1 - 1e-7)))
+            return F.one_hot((probs.log() + gumbel).argmax(-1), self.n).float()
+        mean = probs
+        if mode:
+            return mean.clamp(-1, 1)
+        if noise is None:
+            noise = torch.randn_like(mean)
+        return (mean + std * noise).clamp(-1, 1)
+
+    def log_prob(self, feat: torch.Tensor, a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        d = self.dist(feat)
+        return d.log_prob(a.argmax(-1) if self.discrete else a), d.entropy()
+
+
+class Agent(nn.Module):
+    """World model (encoder, RSSM, decoder, reward and continue heads), actor, critic and slow critic."""
+
+    def __init__(self, env: str, spaces: dict[str, tuple[int, ...]], args: Args):
+        super().__init__()
+        s = ENV_SPECS[env]
+        self.discrete = env == "simple_shapes"
+        self.n_actions = s["actions"]
+        self.twohot = TwoHot()
+        self.encoder = Encoder(spaces, args.cnn_depth, args.units, args.layers)
+        self.rssm = RSSM(
+            self.encoder.out_dim, s["actions"], args.deter, args.hidden, args.classes, args.unimix
+        )
+        self.feat_dim = args.deter + self.rssm.stoch
+        self.decoder = Decoder(spaces, self.feat_dim, args.cnn_depth, args.units, args.layers)
+        self.reward_head = mlp(self.feat_dim, args.units, 255, args.layers, zero_out=True)
+        self.cont_head = mlp(self.feat_dim, args.units, 1, args.layers)
+        self.actor = Actor(self.feat_dim, args.units, args.layers, s["actions"], self.discrete, args.unimix)
+        self.critic = mlp(self.feat_dim, args.units, 255, args.layers, zero_out=True)
+        self.slow_critic = copy.deepcopy(self.critic).requires_grad_(False)
+
+    def world_model_parameters(self) -> list[nn.Parameter]:
+        parts = (self.encoder, self.rssm, self.decoder, self.reward_head, self.cont_head)
+        return [p for m in parts for p in m.parameters()]
+
+    def n_trainable(self) -> dict[str, int]:
+        wm = sum(p.numel() for p in self.world_model_parameters())
+        actor = sum(p.numel() for p in self.actor.parameters())
+        critic = sum(p.numel() for p in self.critic.parameters())
+        return {"world_model": wm, "actor": actor, "critic": critic, "total": wm + actor + critic}
+
+
+def feat_of(deter: torch.Tensor, stoch: torch.Tensor) -> torch.Tensor:
+    return torch.cat([deter, stoch], -1)
+
+
+# --------------------------------------------------------------------------------------------------
+# Replay buffer: one stream per environment of DreamerV3 entries
+# (o_t, a_{t-1}, r_t, terminal_t, first_t): the observation, the action that led to it, the reward
+# received with it, whether it ends the episode, whether it starts one.
+# --------------------------------------------------------------------------------------------------
+class Replay:
+    def __init__(self, capacity: int, num_envs: int, spaces: dict, action_dim: int, seed: int):
+        self.cap = max(capacity // num_envs, 2)
+        self.n = num_envs
+        self.obs_keys = list(spaces)
+        self.data = {
+            k: np.zeros((num_envs, self.cap, *shape), np.uint8 if k == "image" else np.float32)
+            for k, shape in spaces.items()
+        }
+        self.data |= {
+            "action": np.zeros((num_envs, self.cap, action_dim), np.float32),
+            "reward": np.zeros((num_envs, self.cap), np.float32),
+            "terminal": np.zeros((num_envs, self.cap), np.float32),
+            "first": np.zeros((num_envs, self.cap), np.float32),
+        }
+        self.pos = np.zeros(num_envs, np.int64)  # next write index per stream
+        self.count = np.zeros(num_envs, np.int64)  # entries written per stream (not capped)
+        self.rng = np.random.default_rng(seed)
+
+    def add(self, env_idx: np.ndarray, entry: dict[str, np.ndarray]) -> None:
+        for j, i in enumerate(env_idx):
+            p = self.pos[i]
+            for k, v in entry.items():
+                self.data[k][i, p] = v[j]
+            self.pos[i] = (p + 1) % self.cap
+            self.count[i] += 1
+
+    def __len__(self) -> int:
+        return int(np.minimum(self.count, self.cap).sum())
+
+    def ready(self, length: int) -> bool:
+        return bool(np.all(np.minimum(self.count, self.cap) >= length))
+
+    def sample(self, batch: int, length: int) -> dict[str, np.ndarray]:
+        """``batch`` windows of ``length`` consecutive entries; each window's first entry is treated as
+        an episode start (the state restarts there, as DreamerV3 without replayed latents)."""
+        envs_ = self.rng.integers(0, self.n, batch)
+        filled = np.minimum(self.count[envs_], self.cap)
+        oldest = np.where(self.count[envs_] > self.cap, self.pos[envs_], 0)
+        start = oldest + (self.rng.random(batch) * (filled - length + 1)).astype(np.int64)
+        idx = (start[:, None] + np.arange(length)[None]) % self.cap
+        out = {k: v[envs_[:, None], idx] for k, v in self.data.items()}
+        out["first"][:, 0] = 1.0
+        return out
+
+    def state_dict(self) -> dict:
+        """Only the filled part of each stream is saved (a full-size buffer of images is gigabytes)."""
+        used = int(np.minimum(self.count, self.cap).max())
+        return {"data": {k: v[:, :used].copy() for k, v in self.data.items()}, "pos": self.pos,
+                "count": self.count, "rng": self.rng.bit_generator.state}  # fmt: skip
+
+    def load_state_dict(self, s: dict) -> None:
+        for k, v in s["data"].items():
+            if v.shape[0] != self.n or v.shape[2:] != self.data[k].shape[2:]:
+                raise ValueError(f"replay entry {k!r} of shape {v.shape} does not fit this run")
+            self.data[k][:, : v.shape[1]] = v
+        self.pos, self.count = s["pos"], s["count"]
+        self.rng.bit_generator.state = s["rng"]
+
+
+# --------------------------------------------------------------------------------------------------
+# Losses
+# --------------------------------------------------------------------------------------------------
+def observe(agent: Agent, batch: dict[str, torch.Tensor]):
+    """Posterior states along replayed sequences: deter, stoch, post_logits, prior_logits, each (B, T, .)."""
+    embed = agent.encoder({k: batch[k] for k in agent.encoder.vec_keys + ["image"] if k in batch})
+    B, T = batch["first"].shape
+    deter, stoch = agent.rssm.initial(B, embed.device)
+    outs = []
+    for t in range(T):
+        deter, stoch, post, prior = agent.rssm.obs_step(
+            deter, stoch, batch["action"][:, t], embed[:, t], batch["first"][:, t]
+        )
+        outs.append((deter, stoch, post, prior))
+    return [torch.stack(x, 1) for x in zip(*outs, strict=True)]
+
+
+def world_model_loss(agent: Agent, batch: dict[str, torch.Tensor], args: Args):
+    """DreamerV3: prediction (decoders, two-hot reward, continue) + kl_dyn max(free, KL(sg(q) || p)) +
+    kl_rep max(free, KL(q || sg(p))), averaged over the replayed entries. Returns the loss, its terms and
+    the posterior states (imagination starts)."""
+    deter, stoch, post, prior = observe(agent, batch)
+    feat = feat_of(deter, stoch)
+    rec = agent.decoder.loss(feat, batch)
+    loss_rew = agent.twohot.loss(agent.reward_head(feat), batch["reward"])
+    cont_logit = agent.cont_head(feat).squeeze(-1)
+    loss_cont = F.binary_cross_entropy_with_logits(cont_logit, 1 - batch["terminal"], reduction="none")
+    kl_dyn = agent.rssm.kl(post.detach(), prior)
+    kl_rep = agent.rssm.kl(post, prior.detach())
+    loss_dyn, loss_rep = kl_dyn.clamp(min=args.kl_free), kl_rep.clamp(min=args.kl_free)
+    total = sum(rec.values()) + loss_rew + loss_cont + args.kl_dyn * loss_dyn + args.kl_rep * loss_rep
+    terms = {f"loss_{k}": v.mean() for k, v in rec.items()}
+    terms |= {"loss_reward": loss_rew.mean(), "loss_cont": loss_cont.mean(), "kl": kl_dyn.mean()}
+    return total.mean(), terms, (deter, stoch)
+
+
+def imagine(agent: Agent, deter: torch.Tensor, stoch: torch.Tensor, horizon: int, grad: bool):
+    """Dream ``horizon`` steps with the actor from the given states. Returns features (H + 1, N, F),
+    actions (H, N, A), rewards and continue probabilities (H, N) of the dreamt states 1..H. With
+    ``grad`` the rollout is differentiable (dynamics backpropagation for continuous actions)."""
+    with torch.set_grad_enabled(grad):
+        feats, actions = [feat_of(deter, stoch)], []
+        for _ in range(horizon):
+            a = agent.actor.act(feats[-1].detach() if not grad else feats[-1])
+            deter, stoch = agent.rssm.img_step(deter, stoch, a)
+            feats.append(feat_of(deter, stoch))
+            actions.append(a)
+        feats, actions = torch.stack(feats), torch.stack(actions)
+        rewards = agent.twohot.mean(agent.reward_head(feats[1:]))
+        conts = torch.sigmoid(agent.cont_head(feats[1:]).squeeze(-1))
+    return feats, actions, rewards, conts
+
+
+def lambda_returns(rewards, conts, values, gamma: float, lam: float) -> torch.Tensor:
+    """R_k = r_{k+1} + gamma c_{k+1} ((1 - lam) v_{k+1} + lam R_{k+1}), R_H = v_H (DreamerV3)."""
+    out, last = [], values[-1]
+    for k in reversed(range(len(rewards))):
+        last = rewards[k] + gamma * conts[k] * ((1 - lam) * values[k + 1] + lam * last)
+        out.append(last)
+    return torch.stack(out[::-1])
+
+
+def actor_critic_loss(
+    agent: Agent, feats, actions, rewards, conts, start_w, scale, n_updates, args, dynamics
+):
+    """DreamerV3 actor-critic on an imagined rollout. Advantages are normalised by the return scale
+    max(1, P95 - P5) (EMA). The actor uses REINFORCE, or (``dynamics``) the gradient of the normalised
+    lambda-return through the differentiable rollout; both with an entropy bonus. The two-hot critic
+    fits the lambda-returns and is regularised toward its slow copy."""
+    values = agent.twohot.mean(agent.critic(feats))  # differentiable through feats when dynamics
+    returns = lambda_returns(rewards, conts, values, args.gamma, args.lam)  # (H, N)
+    with torch.no_grad():
+        w = torch.cumprod(torch.cat([torch.ones_like(conts[:1]), conts[:-1]]), 0) * start_w
+        lo, hi = torch.quantile(returns.detach().flatten(), torch.tensor([0.05, 0.95], device=returns.device))
+        scale = args.return_norm_decay * scale + (1 - args.return_norm_decay) * (hi - lo).item()
+        # Bias-corrected like Adam's moments: the EMA starts at 0.
+        debiased = scale / (1 - args.return_norm_decay ** (n_updates + 1))
+        slow_target = agent.twohot.mean(agent.slow_critic(feats[:-1].detach()))
+    logp, entropy = agent.actor.log_prob(feats[:-1].detach(), actions.detach())
+    if dynamics:
+        objective = (returns - values[:-1].detach()) / max(1.0, debiased)
+    else:
+        objective = logp * ((returns - values[:-1]) / max(1.0, debiased)).detach()
+    loss_actor = -(w * (objective + args.entropy_coef * entropy)).mean()
+    logits = agent.critic(feats[:-1].detach())
+    target = returns.detach()
+    loss_critic = (w * (agent.twohot.loss(logits, target) + agent.twohot.loss(logits, slow_target))).mean()
+    stats = {"return_scale": debiased, "imag_return": returns.mean().item(), "entropy": entropy.mean().item()}
+    return loss_actor, loss_critic, scale, stats
+
+
+# --------------------------------------------------------------------------------------------------
+# Environments and evaluation
+# --------------------------------------------------------------------------------------------------
+def make_envs(args: Args, num_envs: int):
+    """Vector env with same-step autoreset (info["final_obs"] holds the last observation)."""
+    if args.env == "simple_shapes":
+        from envs.simple_shapes import SimpleShapesVectorEnv
+
+        return SimpleShapesVectorEnv(num_envs)
+    from envs.robodesk import TASKS
+
+    if args.task not in TASKS:
+        raise ValueError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
+    fns = [
+        lambda: gym.make(
+            "RoboDesk-v0",
+            task=args.task,
+            render_quality=args.render_quality,
+            episode_length=args.episode_length,
+        )
+        for _ in range(num_envs)
+    ]
+    return gym.vector.SyncVectorEnv(fns, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
+
+
+def final_observations(info: dict, ends: np.ndarray) -> dict[str, np.ndarray]:
+    """Last observations of the episodes that ended (same-step autoreset)."""
+    fo = info["final_obs"]
+    if isinstance(fo, dict):
+        return {k: v[ends] for k, v in fo.items()}
+    return {k: np.stack([fo[i][k] for i in ends]) for k in fo[ends[0]]}
+
+
+def step_success(info: dict, n: int) -> np.ndarray:
+    """RoboDesk's per-step success flag; for an env that just reset, the flag of its final step."""
+    if "success" not in info:
+        return np.zeros(n)
+    success = np.asarray(info["success"], float).copy()
+    for i in np.flatnonzero(info.get("_final_info", np.zeros(n, bool))):
+        success[i] = float(info["final_info"]["success"][i])
+    return success
+
+
+def action_for_env(a: torch.Tensor, discrete: bool) -> np.ndarray:
+    return a.argmax(-1).cpu().numpy() if discrete else a.cpu().numpy().astype(np.float32)
+
+
+def as_tensors(obs: dict[str, np.ndarray], dev) -> tuple[torch.Tensor, torch.Tensor]:
+    return torch.as_tensor(obs["image"], device=dev), torch.as_tensor(obs["attr"], device=dev).float()
+
+
+class PolicyStep(nn.Module):
+    """One acting step from a raw environment observation: observer -> encoder -> posterior -> actor.
+    The whole recurrent state is explicit, and randomness enters as inputs, so the module exports with
+    ``torch.export`` and runs anywhere without this file (the expert of pretrain_vae_gw.py)."""
+
+    def __init__(self, agent: Agent, observer: Observer):
+        super().__init__()
+        self.agent, self.observer = agent, observer
+
+    def forward(self, image, attr, deter, stoch, prev_action, first, noise_z, noise_a):
+        o = self.observer(image, attr)
+        embed = self.agent.encoder(o)
+        deter, stoch, _, _ = self.agent.rssm.obs_step(deter, stoch, prev_action, embed, first, noise_z)
+        action = self.agent.actor.act(feat_of(deter, stoch), noise=noise_a)
+        return action, deter, stoch
+
+
+@torch.no_grad()
+def run_episodes(agent: Agent, observer: Observer, args: Args, n: int, drop: str, seed: int):
+    """n full episodes with fresh environments (seeds seed..seed+n-1), the policy sampling its actions;
+    returns per-episode returns and success counts (RoboDesk)."""
+    dev = next(agent.parameters()).device
+    envs_ = make_envs(args, n)
+    obs, _ = envs_.reset(seed=seed)
+    deter, stoch = agent.rssm.initial(n, dev)
+    action = torch.zeros(n, agent.n_actions, device=dev)
+    first = torch.ones(n, device=dev)
+    returns, successes = np.zeros(n), np.zeros(n)
+    alive = np.ones(n, bool)
+    while alive.any():
+        embed = agent.encoder(observer(*as_tensors(obs, dev), drop))
+        deter, stoch, _, _ = agent.rssm.obs_step(deter, stoch, action, embed, first)
+        action = agent.actor.act(feat_of(deter, stoch))
+        first = torch.zeros(n, device=dev)
+        obs, r, term, trunc, info = envs_.step(action_for_env(action, agent.discrete))
+        returns += r * alive
+        successes += step_success(info, n) * alive
+        alive &= ~(term | trunc)
+    envs_.close()
+    return returns, successes
+
+
+@torch.no_grad()
+def dream_filmstrip(agent: Agent, observer: Observer, args: Args, steps: int, seed: int) -> np.ndarray | None:
+    """Real frames (top row) beside the decoded dream (bottom row) from the same start and actions
+    (raw observations only: VAE-Dreamer decodes vectors, not images). uint8 (2 H, steps W, 3)."""
+    if "image" not in agent.decoder.spaces:
+        return None
+    dev = next(agent.parameters()).device
+    env = make_envs(args, 1)
+    obs, _ = env.reset(seed=seed)
+    deter, stoch = agent.rssm.initial(1, dev)
+    embed = agent.encoder(observer(*as_tensors(obs, dev)))
+    deter, stoch, _, _ = agent.rssm.obs_step(deter, stoch, torch.zeros(1, agent.n_actions, device=dev),
+                                             embed, torch.ones(1, device=dev))  # fmt: skip
+    real, dream = [obs["image"][0]], [agent.decoder.image(feat_of(deter, stoch))]
+    for _ in range(steps - 1):
+        a = agent.actor.act(feat_of(deter, stoch), mode=True)
+        obs, _, term, trunc, info = env.step(action_for_env(a, agent.discrete))
+        deter, stoch = agent.rssm.img_step(deter, stoch, a)
+        ended = (term | trunc).any()
+        real.append(final_observations(info, np.array([0]))["image"][0] if ended else obs["image"][0])
+        dream.append(agent.decoder.image(feat_of(deter, stoch)))
+        if ended:
+            break
+    env.close()
+    imgs = [
+        ((d[0] + 0.5).clamp(0, 1).permute(1, 2, 0).cpu().numpy() * 255).round().astype(np.uint8)
+        for d in dream
+    ]
+    return np.concatenate([np.concatenate(real, 1), np.concatenate(imgs, 1)], 0)
+
+
+# --------------------------------------------------------------------------------------------------
+# Checkpoints and the exported expert policy
+# --------------------------------------------------------------------------------------------------
+def atomic_save(obj: dict, path: Path) -> None:
+    """Write to a temporary file then rename: an interruption never leaves a torn checkpoint."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def export_policy(agent: Agent, observer: Observer, args: Args, path: Path) -> None:
+    """``path``: a torch.export program of ``PolicyStep`` with a batch dimension of any size, and its
+    description (env, task, input and state shapes) as the extra file meta.json."""
+    s = ENV_SPECS[args.env]
+    policy = PolicyStep(copy.deepcopy(agent).cpu().eval(), copy.deepcopy(observer).cpu().eval())
+    n = 2
+    example = (
+        torch.zeros(n, s["image"], s["image"], 3, dtype=torch.uint8), torch.zeros(n, s["attr"]),
+        torch.zeros(n, args.deter), torch.zeros(n, agent.rssm.stoch), torch.zeros(n, s["actions"]),
+        torch.ones(n), torch.rand(n, STOCH, args.classes),
+        torch.rand(n, s["actions"]) if agent.discrete else torch.randn(n, s["actions"]),
+    )  # fmt: skip
+    batch = torch.export.Dim("batch", min=1, max=4096)
+    with torch.no_grad():
+        program = torch.export.export(policy, example, dynamic_shapes=tuple({0: batch} for _ in example))
+    meta = {
+        "kind": "dreamer_policy",
+        "env": args.env,
+        "task": args.task if args.env == "robodesk" else None,
+        "obs": args.obs,
+        "size": args.size,
+        "deter": args.deter,
+        "stoch": agent.rssm.stoch,
+        "latents": [STOCH, args.classes],
+        "actions": s["actions"],
+        "discrete": agent.discrete,
+        "inputs": "image uint8 (n,H,W,3), attr (n,A), deter, stoch, prev_action, first (n,), "
+        "noise_z uniform (n,32,classes), noise_a uniform (discrete) / standard normal (continuous)",
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.stem + ".tmp.pt2")  # torch.export wants the .pt2 suffix
+    torch.export.save(program, tmp, extra_files={"meta.json": json.dumps(meta)})
+    os.replace(tmp, path)
+
+
+def observer_fingerprint(observer: Observer) -> float:
+    """A number that changes with the frozen VAE weights (0 for raw observations)."""
+    return float(sum(p.double().sum() for p in observer.parameters()))
+
+
+def load_agent_checkpoint(path: Path, args: Args, fingerprint: float) -> dict:
+    """A Dreamer checkpoint for this env, observation kind and network size."""
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"no agent checkpoint at {path}; train one with "
+            f"`python dreamer_baseline.py --env {args.env} --obs {args.obs} --size {args.size}`"
+        )
+    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    if ckpt.get("kind") != "dreamer":
+        raise ValueError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected a dreamer agent")
+    saved = ckpt["args"]
+    for key in ("env", "obs", "deter", "hidden", "units", "cnn_depth", "layers", "classes"):
+        if saved[key] != getattr(args, key):
+            raise ValueError(
+                f"{path} has {key}={saved[key]!r} but this run has {key}={getattr(args, key)!r}; "
+                f"give the flags it was trained with (size {saved['size']})"
+            )
+    if abs(ckpt["observer_fingerprint"] - fingerprint) > 1e-6 * max(1.0, abs(fingerprint)):
+        raise ValueError(f"{path} was trained on other VAE weights ({ckpt['vae_checkpoint']})")
+    return ckpt
+
+
+def count_flops(fn):
+    """``fn()`` and the forward + backward FLOPs it took (torch.utils.flop_counter)."""
+    with FlopCounterMode(display=False) as counter:
+        out = fn()
+    return out, counter.get_total_flops()
+
+
+def updates_due(env_steps: int, args: Args) -> int:
+    """Training updates owed after ``env_steps`` environment steps. The table's train ratio 32 is
+    DreamerV3's (replayed steps per environment step): a batch of 16 x 65 = 1,040 replayed steps per
+    update gives one update per 32.5 environment steps."""
+    return int(
+        max(env_steps - args.learning_starts, 0) * args.train_ratio / (args.batch_size * args.batch_length)
+    )
+
+
+def train_update(agent: Agent, opts: dict, replay: Replay, args: Args, state: dict, dev) -> dict:
+    """One training step: the world model on replayed sequences, then the actor-critic on rollouts
+    dreamt from every replayed posterior state."""
+    raw = replay.sample(args.batch_size, args.batch_length)
+    batch = {k: torch.as_tensor(v, device=dev) for k, v in raw.items()}
+    loss_wm, terms, (deter, stoch) = world_model_loss(agent, batch, args)
+    if not torch.isfinite(loss_wm):
+        raise FloatingPointError(f"non-finite world-model loss at env step {state['env_steps']:,}")
+    opts["wm"].zero_grad(set_to_none=True)
+    loss_wm.backward()
+    nn.utils.clip_grad_norm_(agent.world_model_parameters(), 1000.0)
+    opts["wm"].step()
+
+    dynamics = args.actor_grad == "dynamics" or (args.actor_grad == "auto" and not agent.discrete)
+    deter0, stoch0 = deter.detach().flatten(0, 1), stoch.detach().flatten(0, 1)
+    start_w = (1 - batch["terminal"]).flatten()  # no dream from an episode's final observation
+    feats, actions, rewards, conts = imagine(agent, deter0, stoch0, args.imag_horizon, grad=dynamics)
+    loss_actor, loss_critic, state["return_scale"], stats = actor_critic_loss(
+        agent,
+        feats,
+        actions,
+        rewards,
+        conts,
+        start_w,
+        state["return_scale"],
+        state["updates"],
+        args,
+        dynamics,
+    )
+    if not (torch.isfinite(loss_actor) and torch.isfinite(loss_critic)):
+        raise FloatingPointError(f"non-finite actor-critic loss at env step {state['env_steps']:,}")
+    opts["actor"].zero_grad(set_to_none=True)
+    opts["critic"].zero_grad(set_to_none=True)
+    # Each loss reaches only its own network (the world model is trained by L_WM alone).
+    loss_actor.backward(inputs=list(agent.actor.parameters()))
+    loss_critic.backward(inputs=list(agent.critic.parameters()))
+    nn.utils.clip_grad_norm_(agent.actor.parameters(), 100.0)
+    nn.utils.clip_grad_norm_(agent.critic.parameters(), 100.0)
+    opts["actor"].step()
+    opts["critic"].step()
+    with torch.no_grad():  # slow critic: EMA of the critic
+        for p_slow, p in zip(agent.slow_critic.parameters(), agent.critic.parameters(), strict=True):
+            p_slow.lerp_(p, 1 - args.slow_critic_decay)
+    out = {"loss_wm": loss_wm, **terms, "loss_actor": loss_actor, "loss_critic": loss_critic}
+    return {k: v.item() for k, v in out.items()} | stats
+
+
+def make_optimizers(agent: Agent, args: Args) -> dict:
+    """Adam per part with the table's rates (eps as DreamerV3)."""
+    return {
+        "wm": torch.optim.Adam(agent.world_model_parameters(), lr=args.wm_lr, eps=1e-8),
+        "actor": torch.optim.Adam(agent.actor.parameters(), lr=args.ac_lr, eps=1e-5),
+        "critic": torch.optim.Adam(agent.critic.parameters(), lr=args.ac_lr, eps=1e-5),
+    }
+
+
+def load_observer(args: Args) -> tuple[Observer, str | None]:
+    if args.obs == "raw":
+        return Observer(args.env, "raw", None), None
+    vae_path = (
+        Path(args.vae_checkpoint) if args.vae_checkpoint else Path(args.checkpoint_dir) / args.env / "vae.pt"
+    )
+    return Observer(args.env, "vae", load_vae(vae_path, args.env)), str(vae_path)
+
+
+# --------------------------------------------------------------------------------------------------
+# Training loop
+# --------------------------------------------------------------------------------------------------
+def main(args: Args) -> dict:
+    args.resolve()
+    if args.torch_threads:
+        torch.set_num_threads(args.torch_threads)
+    dev = torch.device(args.device)
+    if args.env == "robodesk":
+        from envs.robodesk import TASKS
+
+        if args.task not in TASKS:
+            raise ValueError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
+    if args.batch_length < 2:
+        raise ValueError(f"--batch-length must be at least 2, got {args.batch_length}")
+    observer, vae_path = load_observer(args)
+    observer = observer.to(dev)
+    spaces = observer.spaces(args.env)
+    task = "" if args.env == "simple_shapes" else f"_{args.task}"
+    run_name = f"{args.exp_name}_{args.obs}_{args.size}_{args.env}{task}_s{args.seed}"
+    ck_root = Path(args.checkpoint_dir) / args.env
+    agent_path = Path(args.checkpoint) if args.checkpoint else ck_root / "agents" / f"{run_name}.pt"
+    policy_path = agent_path.with_suffix(".policy.pt2")
+    fingerprint = observer_fingerprint(observer)
+
+    random.seed(args.seed)
+    np.random.seed(args.seed)
+    torch.manual_seed(args.seed)
+    agent = Agent(args.env, spaces, args).to(dev)
+    discrete = agent.discrete
+    ref = ss_reference_returns() if args.env == "simple_shapes" else None
+
+    def normalise(ret: float) -> float:
+        return (ret - ref[0]) / (ref[1] - ref[0]) if ref else float("nan")
+
+    if args.eval_only:
+        ck = load_agent_checkpoint(agent_path, args, fingerprint)
+        agent.load_state_dict(ck["agent"])
+        rets, succ = run_episodes(
+            agent, observer, args, args.eval_episodes, args.drop, seed=args.seed + 10**6
+        )
+        sem = rets.std(ddof=1) / math.sqrt(len(rets)) if len(rets) > 1 else 0.0
+        out = {"drop": args.drop, "return_mean": float(rets.mean()), "return_sem": float(sem)}
+        line = f"[eval] drop={args.drop}: return {rets.mean():.2f} ± {sem:.2f} (s.e.m., {len(rets)} episodes)"
+        if ref:
+            out["normalised_return"] = normalise(float(rets.mean()))
+            line += f", normalised {out['normalised_return']:.3f}"
+        if args.env == "robodesk":
+            out["success_count"] = float(succ.mean())
+            line += f", success count {succ.mean():.1f} ± {succ.std(ddof=1) / math.sqrt(len(succ)):.1f}"
+        print(line)
+        return out
+
+    opts = make_optimizers(agent, args)
+    n_actions = agent.n_actions
+    replay = Replay(args.buffer_size, args.num_envs, spaces, n_actions, args.seed)
+    state = {
+        "env_steps": 0,
+        "updates": 0,
+        "flops": 0,
+        "flops_per_update": 0,
+        "return_scale": 0.0,
+        "episodes": 0,
+        "criterion_step": None,
+        "recent": [],
+        "next_eval": args.eval_every,
+        "next_save": args.save_every,
+        "next_video": args.video_every or args.total_steps,
+    }
+    if args.resume:
+        ck = load_agent_checkpoint(agent_path, args, fingerprint)
+        agent.load_state_dict(ck["agent"])
+        for name, opt in opts.items():
+            opt.load_state_dict(ck["opts"][name])
+        replay.load_state_dict(ck["replay"])
+        state.update(ck["state"])
+        torch.set_rng_state(ck["torch_rng"])
+        np.random.set_state(ck["np_rng"])
+        print(f"[dreamer] resuming {agent_path} at env step {state['env_steps']:,}")
+
+    writer = SummaryWriter(f"runs/{run_name}")
+    if not args.resume:
+        writer.add_text(
+            "hyperparameters",
+            "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in vars(args).items()),
+        )
+    n = agent.n_trainable()
+    table = TABLE_TOTALS[args.size]
+    name = "VAE-Dreamer" if args.obs == "vae" else "Dreamer"
+    custom = any(getattr(args, k) != v for k, v in MODEL_SIZES[args.size].items())
+    print(
+        f"[dreamer] {name} {args.size}{' with custom widths' if custom else ''} on {args.env}{task}: "
+        f"{n['total']:,} trainable parameters (world model {n['world_model']:,}, actor {n['actor']:,}, "
+        f"critic {n['critic']:,})"
+        + ("" if custom else f"; the table's total {table / 1e6:.0f}M ({n['total'] / table - 1:+.1%})")
+    )
+    if ref:
+        print(
+            f"[dreamer] normalised return: random policy {ref[0]:.1f} -> 0, greedy policy {ref[1]:.1f} -> 1"
+        )
+
+    def save() -> None:
+        atomic_save(
+            {
+                "kind": "dreamer",
+                "env": args.env,
+                "task": args.task,
+                "args": asdict(args),
+                "vae_checkpoint": vae_path,
+                "observer_fingerprint": fingerprint,
+                "agent": agent.state_dict(),
+                "opts": {k: opt.state_dict() for k, opt in opts.items()},
+                "replay": replay.state_dict(),
+                "state": state,
+                "torch_rng": torch.get_rng_state(),
+                "np_rng": np.random.get_state(),
+            },
+            agent_path,
+        )
+        export_policy(agent, observer, args, policy_path)
+
+    def log_episode(ret: float, success: float) -> None:
+        state["episodes"] += 1
+        step = state["env_steps"]
+        writer.add_scalar("charts/episodic_return", ret, step)
+        if args.env == "robodesk":
+            writer.add_scalar("charts/success_count", success, step)
+            return
+        state["recent"] = (state["recent"] + [normalise(ret)])[-args.smoothing :]
+        smooth = float(np.mean(state["recent"]))
+        writer.add_scalar("charts/normalised_return", normalise(ret), step)
+        writer.add_scalar("charts/smoothed_normalised_return", smooth, step)
+        if (
+            state["criterion_step"] is None
+            and len(state["recent"]) == args.smoothing
+            and smooth >= args.criterion
+        ):
+            state["criterion_step"] = step
+            writer.add_scalar("charts/criterion_step", step, step)
+            print(f"[dreamer] return criterion ({args.criterion}) reached at env step {step:,}")
+
+    # ------------------------------------------------------------------------------------------
+    envs_ = make_envs(args, args.num_envs)
+    obs, _ = envs_.reset(seed=args.seed + state["env_steps"])
+    ne = args.num_envs
+    idx = np.arange(ne)
+    deter, stoch = agent.rssm.initial(ne, dev)
+    prev_a = torch.zeros(ne, n_actions, device=dev)
+    reward, terminal, first = np.zeros(ne), np.zeros(ne), np.ones(ne)
+    ep_ret, ep_succ = np.zeros(ne), np.zeros(ne)
+    rng = np.random.default_rng(args.seed + state["env_steps"])
+    t0, steps0, last_log = time.time(), state["env_steps"], {}
+    while state["env_steps"] < args.total_steps:
+        # Store the entry (o_t, a_{t-1}, r_t, terminal_t, first_t), then act on the filtered state.
+        o = observer(*as_tensors(obs, dev))
+        entry = {k: v.cpu().numpy() for k, v in o.items()}
+        replay.add(idx, entry | {"action": prev_a.cpu().numpy(), "reward": reward, "terminal": terminal,
+                                 "first": first})  # fmt: skip
+        with torch.no_grad():
+            embed = agent.encoder(o)
+            first_t = torch.as_tensor(first, device=dev, dtype=torch.float32)
+            deter, stoch, _, _ = agent.rssm.obs_step(deter, stoch, prev_a, embed, first_t)
+            if state["env_steps"] < args.learning_starts:
+                if discrete:
+                    a = F.one_hot(torch.as_tensor(rng.integers(0, n_actions, ne)), n_actions)
+                else:
+                    a = torch.as_tensor(rng.uniform(-1, 1, (ne, n_actions)))
+                a = a.float().to(dev)
+            else:
+                a = agent.actor.act(feat_of(deter, stoch))
+        obs, r, term, trunc, info = envs_.step(action_for_env(a, discrete))
+        done = term | trunc
+        ep_ret += r
+        ep_succ += step_success(info, ne)
+        state["env_steps"] += ne
+        prev_a, reward, terminal, first = a, r.astype(np.float64), term.astype(np.float64), np.zeros(ne)
+        if done.any():
+            # The final observation is its own entry; the reset observation starts the next episode.
+            ends = np.flatnonzero(done)
+            fo = final_observations(info, ends)
+            o_final = observer(*as_tensors(fo, dev))
+            replay.add(ends, {k: v.cpu().numpy() for k, v in o_final.items()} | {
+                "action": a[ends].cpu().numpy(), "reward": r[ends], "terminal": term[ends].astype(float),
+                "first": np.zeros(len(ends))})  # fmt: skip
+            for i in ends:
+                log_episode(float(ep_ret[i]), float(ep_succ[i]))
+            ep_ret[ends], ep_succ[ends] = 0.0, 0.0
+            reward[ends], terminal[ends], first[ends] = 0.0, 0.0, 1.0
+
+        # Train: the updates owed by the train ratio, once the buffer holds a full sequence.
+        while state["updates"] < updates_due(state["env_steps"], args) and replay.ready(args.batch_length):
+            try:
+                if state["flops_per_update"] == 0:  # same shapes every update: count the first one
+                    last_log, state["flops_per_update"] = count_flops(
+                        lambda: train_update(agent, opts, replay, args, state, dev)
+                    )
+                else:
+                    last_log = train_update(agent, opts, replay, args, state, dev)
+            except FloatingPointError as err:
+                raise FloatingPointError(f"{err}; the last good checkpoint is {agent_path}") from err
+            state["updates"] += 1
+            state["flops"] += state["flops_per_update"]
+
+        step = state["env_steps"]
+        if step % args.log_every < ne and last_log:
+            sps = (step - steps0) / max(time.time() - t0, 1e-9)
+            for k, v in last_log.items():
+                writer.add_scalar(f"losses/{k}", v, step)
+            writer.add_scalar("charts/SPS", sps, step)
+            writer.add_scalar("charts/updates", state["updates"], step)
+            writer.add_scalar("charts/train_flops", state["flops"], step)
+            smooth = np.mean(state["recent"]) if state["recent"] else float("nan")
+            eta = (args.total_steps - step) / max(sps, 1e-9) / 60
+            print(
+                f"[dreamer] step {step:,}/{args.total_steps:,} updates {state['updates']:,} "
+                f"{sps:.1f} steps/s ETA {eta:.1f} min | wm {last_log['loss_wm']:.2f} "
+                f"(kl {last_log['kl']:.2f} reward {last_log['loss_reward']:.3f}) "
+                f"smoothed normalised return {smooth:.3f}",
+                flush=True,
+            )
+        if step >= state["next_eval"]:
+            state["next_eval"] += args.eval_every
+            rets, succ = run_episodes(agent, observer, args, args.eval_episodes, "none", seed=10**6 + step)
+            writer.add_scalar("eval/episodic_return", rets.mean(), step)
+            if ref:
+                writer.add_scalar("eval/normalised_return", normalise(float(rets.mean())), step)
+            if args.env == "robodesk":
+                writer.add_scalar("eval/success_count", succ.mean(), step)
+        if step >= state["next_video"]:
+            state["next_video"] += args.video_every or args.total_steps
+            strip = dream_filmstrip(agent, observer, args, 16, seed=10**6)
+            if strip is not None:
+                writer.add_image("dreams/real_top_imagined_bottom", strip, step, dataformats="HWC")
+        if step >= state["next_save"]:
+            state["next_save"] += args.save_every
+            save()
+
+    envs_.close()
+    rets, succ = run_episodes(agent, observer, args, args.eval_episodes, "none", seed=10**6 + 1)
+    strip = dream_filmstrip(agent, observer, args, 16, seed=10**6)
+    if strip is not None:
+        writer.add_image("dreams/real_top_imagined_bottom", strip, state["env_steps"], dataformats="HWC")
+    save()
+    writer.close()
+    result = {
+        "env_steps": state["env_steps"],
+        "updates": state["updates"],
+        "train_flops": state["flops"],
+        "criterion_step": state["criterion_step"],
+        "final_return": float(rets.mean()),
+        "wall_s": time.time() - t0,
+    }
+    if ref:
+        result["final_normalised_return"] = normalise(float(rets.mean()))
+    if args.env == "robodesk":
+        result["final_success_count"] = float(succ.mean())
+    print(f"[dreamer] done: {result}; agent checkpoint {agent_path}, expert policy {policy_path}")
+    return result
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))
