@@ -67,9 +67,9 @@ class Args:
     n_samples: int | None = None
     """samples to collect (default: 500,000 Simple Shapes; RoboDesk 2,000,000, the paper's 1M random + 1M
     expert; use 3,500,000 for its six-task dataset)"""
-    expert_checkpoint: str | None = None
-    """RoboDesk expert policy checkpoint from dreamer_baseline.py, instead of the scripted experts (not
-    available yet: dreamer_baseline.py does not exist)"""
+    expert_checkpoint: tuple[str, ...] = ()
+    """RoboDesk expert policies from dreamer_baseline.py (its <agent>.policy.pt2 files, or the agent .pt
+    beside them), one per task: each collects its own task's expert share instead of the scripted expert"""
     shard_size: int = 50_000
     """samples per compressed shard"""
     render_quality: Literal["faithful", "fast"] = "faithful"
@@ -314,27 +314,109 @@ def collect(args: Args) -> None:
     collect_robodesk(args, folder, need, have, rng_seed, progress)
 
 
-def robodesk_plan(args: Args, need: int) -> list[tuple[str, str, int]]:
+def robodesk_plan(args: Args, need: int, learned: tuple[str, ...] = ()) -> list[tuple[str, str, int]]:
     """(source, task, samples) blocks: an equal expert share per task, the rest random (random episodes
-    run in the first task's env; the task only changes the reward, which is not stored)."""
+    run in the first task's env; the task only changes the reward, which is not stored). A task needs a
+    scripted expert unless ``learned`` (tasks with a dreamer_baseline.py policy) holds it."""
     from envs.robodesk import TASKS
     from envs.robodesk_experts import EXPERTS
 
     tasks = tuple(args.tasks) or (args.task,)
-    for t in tasks:
-        if t not in TASKS:
-            raise ValueError(f"unknown RoboDesk task {t!r}; valid tasks: {', '.join(TASKS)}")
-        if t not in EXPERTS:
-            raise ValueError(
-                f"no scripted expert for {t!r}; experts exist for {', '.join(EXPERTS)} "
-                f"(or give --expert-fraction 0 for random data only)"
-            )
     frac = len(tasks) / (len(tasks) + 1) if args.expert_fraction is None else args.expert_fraction
     if not 0.0 <= frac <= 1.0:
         raise ValueError(f"--expert-fraction must be in [0, 1], got {frac}")
+    for t in tasks:
+        if t not in TASKS:
+            raise ValueError(f"unknown RoboDesk task {t!r}; valid tasks: {', '.join(TASKS)}")
+        if frac > 0 and t not in EXPERTS and t not in learned:
+            raise ValueError(
+                f"no scripted expert for {t!r}; experts exist for {', '.join(EXPERTS)} (or give its "
+                f"dreamer_baseline.py policy with --expert-checkpoint, or --expert-fraction 0 for random "
+                f"data only)"
+            )
     per_task = int(round(need * frac)) // len(tasks)
     blocks = [("expert", t, per_task) for t in tasks if per_task > 0]
     return blocks + [("random", tasks[0], need - per_task * len(blocks))]
+
+
+class ExpertProgram:
+    """A policy exported by dreamer_baseline.py (torch.export program + meta.json): runs without that
+    file's code. Inputs: image, attributes, recurrent state (deter, stoch), previous action, episode-start
+    flag and the noise it samples with; outputs: action and the next state."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        extra = {"meta.json": ""}
+        try:
+            self.program = torch.export.load(path, extra_files=extra).module()
+            self.meta = json.loads(extra["meta.json"])
+        except Exception as err:  # not a torch.export archive, or one without the description
+            raise ValueError(
+                f"{path} is not a policy exported by dreamer_baseline.py ({type(err).__name__}: {err}); "
+                f"train one with `python dreamer_baseline.py --env robodesk --task TASK`"
+            ) from err
+        if self.meta.get("kind") != "dreamer_policy":
+            raise ValueError(f"{path} describes a {self.meta.get('kind')!r}, not a dreamer_policy")
+
+    def start(self, noise: float, seed: int) -> LearnedExpert:
+        return LearnedExpert(self, noise, seed)
+
+
+class LearnedExpert:
+    """One episode stream of an ``ExpertProgram``: keeps its recurrent state; ``noise`` adds Gaussian
+    noise to the actions like the scripted experts' option."""
+
+    def __init__(self, program: ExpertProgram, noise: float, seed: int):
+        self.program, self.noise = program, noise
+        self.gen = torch.Generator().manual_seed(seed)
+        self.rng = np.random.default_rng(seed)
+        self.reset()
+
+    def reset(self) -> None:
+        m = self.program.meta
+        self.deter, self.stoch = torch.zeros(1, m["deter"]), torch.zeros(1, m["stoch"])
+        self.prev, self.first = torch.zeros(1, m["actions"]), torch.ones(1)
+
+    @torch.no_grad()
+    def act(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        m = self.program.meta
+        noise_z = torch.rand(1, *m["latents"], generator=self.gen)
+        noise_a = torch.randn(1, m["actions"], generator=self.gen)
+        action, self.deter, self.stoch = self.program.program(
+            torch.as_tensor(obs["image"])[None], torch.as_tensor(obs["attr"], dtype=torch.float32)[None],
+            self.deter, self.stoch, self.prev, self.first, noise_z, noise_a,
+        )  # fmt: skip
+        self.prev, self.first = action, torch.zeros(1)
+        a = action[0].numpy().astype(np.float64)
+        return np.clip(a + self.rng.normal(0, self.noise, a.shape), -1, 1) if self.noise else a
+
+
+def load_expert_policies(paths: tuple[str, ...], expert_tasks: list[str]) -> dict[str, ExpertProgram]:
+    """Task -> exported dreamer_baseline.py policy, checked to be a RoboDesk policy for a task whose
+    expert data is being collected (one per task)."""
+    out = {}
+    for given in paths:
+        path = Path(given)
+        if path.suffix == ".pt":  # the agent checkpoint: its exported policy sits beside it
+            path = path.with_suffix(".policy.pt2")
+        if not path.is_file():
+            raise FileNotFoundError(
+                f"no exported policy at {path}; `python dreamer_baseline.py --env robodesk --task TASK` "
+                f"writes <agent checkpoint>.policy.pt2 with every checkpoint"
+            )
+        program = ExpertProgram(path)
+        env, task = program.meta.get("env"), program.meta.get("task")
+        if env != "robodesk":
+            raise ValueError(f"{path} is a policy for env {env!r}; RoboDesk data needs a robodesk policy")
+        if task not in expert_tasks:
+            raise ValueError(
+                f"{path} is an expert for {task!r}, which is not among the tasks collected "
+                f"({', '.join(expert_tasks) or 'none'}); add it with --tasks"
+            )
+        if task in out:
+            raise ValueError(f"two expert policies for {task!r}: {out[task].path} and {path}")
+        out[task] = program
+    return out
 
 
 def collect_robodesk(args: Args, folder: Path, need: int, have: int, seed: int, progress: Progress) -> None:
@@ -343,13 +425,15 @@ def collect_robodesk(args: Args, folder: Path, need: int, have: int, seed: int, 
     from envs.robodesk import RoboDeskEnv
     from envs.robodesk_experts import EXPERTS
 
-    if args.expert_checkpoint is not None:
-        raise NotImplementedError(
-            "--expert-checkpoint needs a policy from dreamer_baseline.py, which does not exist yet; "
-            "the scripted experts of envs/robodesk_experts.py are used without it"
-        )
-    blocks = robodesk_plan(args, need)
+    learned = load_expert_policies(args.expert_checkpoint, list(args.tasks or (args.task,)))
+    blocks = robodesk_plan(args, need, tuple(learned))
     print("[collect] RoboDesk data: " + ", ".join(f"{n:,} {src} ({t})" for src, t, n in blocks if n))
+    for src, t, n in blocks:
+        if src == "expert" and n:
+            who = (
+                f"the dreamer_baseline.py policy {learned[t].path}" if t in learned else "its scripted expert"
+            )
+            print(f"[collect] expert data of {t}: {who}")
     buf = {"image": [], "attr": [], "source": [], "task": []}
 
     def flush(force: bool) -> None:
@@ -366,7 +450,11 @@ def collect_robodesk(args: Args, folder: Path, need: int, have: int, seed: int, 
     rng = np.random.default_rng(seed)
     for b, (source, task, n) in enumerate(blocks):
         env = RoboDeskEnv(task=task, render_quality=args.render_quality)
-        policy = EXPERTS[task](env, noise=args.expert_noise, seed=seed + b) if source == "expert" else None
+        policy = None
+        if source == "expert" and task in learned:
+            policy = learned[task].start(noise=args.expert_noise, seed=seed + b)
+        elif source == "expert":
+            policy = EXPERTS[task](env, noise=args.expert_noise, seed=seed + b)
         left, episode = n, 0
         while left > 0:
             obs, _ = env.reset(seed=seed + 1_000 * b + episode)
@@ -380,7 +468,10 @@ def collect_robodesk(args: Args, folder: Path, need: int, have: int, seed: int, 
                 buf["source"].append(source)
                 buf["task"].append(task if source == "expert" else "")
                 left -= 1
-                action = policy.act(env) if policy is not None else rng.uniform(-1, 1, 5)
+                if isinstance(policy, LearnedExpert):
+                    action = policy.act(obs)
+                else:
+                    action = policy.act(env) if policy is not None else rng.uniform(-1, 1, 5)
                 obs, _, term, trunc, _ = env.step(action)
                 done = term or trunc
             flush(False)

@@ -1,0 +1,291 @@
+"""dreamer_baseline.py: parameter counts per size, CLI runs on both envs for both --obs, resume, modality
+ablation, world-model learning, symlog/two-hot, imagination gradients, replay entries, the exported
+expert policy feeding pretrain_vae_gw.py, errors."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from conftest import run_pretrain, run_script
+
+import dreamer_baseline as D
+import pretrain_vae_gw as P
+
+SMALL = ["--deter", "64", "--hidden", "32", "--units", "32", "--cnn-depth", "4", "--classes", "4"]
+TINY = [*SMALL, "--learning-starts", "100", "--batch-size", "4", "--batch-length", "8",
+        "--train-ratio", "16", "--imag-horizon", "5", "--eval-episodes", "2", "--video-every", "0",
+        "--log-every", "100"]  # fmt: skip
+RD = ["--env", "robodesk", "--task", "push_green", "--render-quality", "fast", "--episode-length", "40"]
+
+
+def small_args(**kw) -> D.Args:
+    sizes = dict(deter=64, hidden=32, units=32, cnn_depth=4, classes=4, batch_size=4, batch_length=8)
+    return D.Args(**(sizes | kw)).resolve()
+
+
+def agent_path(ck: str, name: str):
+    return ck / "agents" / f"{name}.pt"
+
+
+@pytest.mark.parametrize("env,size", [("simple_shapes", "2m"), ("robodesk", "12m"), ("robodesk", "40m")])
+def test_parameter_count_matches_the_table_within_10_percent(env, size):
+    args = D.Args(env=env, size=size).resolve()
+    agent = D.Agent(env, D.Observer(env, "raw", None).spaces(env), args)
+    total = agent.n_trainable()["total"]
+    assert abs(total / D.TABLE_TOTALS[size] - 1) < 0.10, total
+
+
+@pytest.fixture(scope="module")
+def ss_run(tmp_path_factory):
+    """300 steps of Dreamer (raw observations) on Simple Shapes through the CLI, saving at 150 and the end."""
+    tmp = tmp_path_factory.mktemp("dreamer_ss")
+    log = run_script(
+        "dreamer_baseline.py", tmp, "--env", "simple_shapes", "--checkpoint-dir", str(tmp / "ck"), *TINY,
+        "--total-steps", "300", "--eval-every", "150", "--save-every", "150", "--video-every", "300",
+    )  # fmt: skip
+    return tmp, log, agent_path(tmp / "ck" / "simple_shapes", "dreamer_raw_2m_simple_shapes_s1")
+
+
+def test_simple_shapes_cli_run_trains_saves_and_logs(ss_run):
+    tmp, log, agent = ss_run
+    assert "Dreamer 2m with custom widths on simple_shapes" in log and "done:" in log
+    ck = torch.load(agent, weights_only=False)
+    assert ck["kind"] == "dreamer" and ck["state"]["env_steps"] == 300
+    assert ck["state"]["updates"] == (300 - 100) * 16 // (4 * 8)  # DreamerV3's train ratio
+    assert ck["state"]["flops"] == ck["state"]["updates"] * ck["state"]["flops_per_update"] > 0
+    assert agent.with_suffix(".policy.pt2").is_file()
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(tmp / "runs" / "dreamer_raw_2m_simple_shapes_s1")).Reload()
+    for tag in ("charts/episodic_return", "charts/normalised_return", "charts/SPS", "losses/loss_wm",
+                "losses/kl", "losses/loss_image", "eval/episodic_return"):  # fmt: skip
+        assert tag in acc.Tags()["scalars"], tag
+    assert "dreams/real_top_imagined_bottom" in acc.Tags()["images"]
+
+
+def test_replay_holds_dreamerv3_entries(ss_run):
+    """Entries (o_t, a_{t-1}, r_t, terminal_t, first_t): an episode's final observation is its own entry
+    and the next entry starts a new episode with no previous action."""
+    replay = torch.load(ss_run[2], weights_only=False)["replay"]["data"]
+    first, reward, action = replay["first"][0], replay["reward"][0], replay["action"][0]
+    starts = np.flatnonzero(first)
+    assert starts[0] == 0 and len(starts) >= 2  # 100-step episodes: several in 300 steps
+    assert np.all(reward[starts] == 0)
+    assert np.all(action[1:].sum(-1)[first[1:] == 0] == 1)  # one-hot previous actions inside episodes
+    assert np.all(np.diff(starts) == 101)  # 100 steps + the final observation's entry
+
+
+def test_resume_continues_the_saved_run(ss_run):
+    tmp, _, agent = ss_run
+    log = run_script(
+        "dreamer_baseline.py", tmp, "--env", "simple_shapes", "--checkpoint-dir", str(tmp / "ck"), *TINY,
+        "--total-steps", "400", "--resume", "--eval-every", "1000", "--save-every", "1000",
+    )  # fmt: skip
+    assert "resuming" in log and "at env step 300" in log
+    ck = torch.load(agent, weights_only=False)
+    assert ck["state"]["env_steps"] == 400 and ck["state"]["updates"] == (400 - 100) * 16 // 32
+
+
+def test_eval_only_with_each_drop_and_size_mismatch(ss_run):
+    tmp, _, agent = ss_run
+    log = run_script(
+        "dreamer_baseline.py", tmp, "--env", "simple_shapes", *SMALL, "--eval-only", "--checkpoint",
+        str(agent), "--drop", "vision", "--eval-episodes", "3",
+    )  # fmt: skip
+    assert "drop=vision: return" in log and "3 episodes" in log
+    for drop in ("none", "attr"):
+        out = D.main(small_args(eval_only=True, checkpoint=str(agent), drop=drop, eval_episodes=2))
+        assert out["drop"] == drop and math.isfinite(out["normalised_return"])
+    with pytest.raises(ValueError, match="has deter=64 but this run has deter=512"):
+        D.main(D.Args(eval_only=True, checkpoint=str(agent)))
+
+
+def test_dropping_a_modality_zeroes_its_input(pretrained):
+    from envs.simple_shapes import sample_dataset
+
+    obs = sample_dataset(3, seed=0)
+    image, attr = torch.as_tensor(obs["image"]), torch.as_tensor(obs["attr"])
+    raw = D.Observer("simple_shapes", "raw", None)
+    assert raw(image, attr, "vision")["image"].abs().sum() == 0
+    assert torch.equal(raw(image, attr, "vision")["attr"], attr)
+    assert raw(image, attr, "attr")["attr"].abs().sum() == 0
+    vae = D.Observer(
+        "simple_shapes", "vae", D.load_vae(pretrained[0] / "ck" / "simple_shapes" / "vae.pt", "simple_shapes")
+    )
+    full, no_attr, no_vision = (
+        vae(image, attr)["x"],
+        vae(image, attr, "attr")["x"],
+        vae(image, attr, "vision")["x"],
+    )
+    assert (
+        full.shape == (3, 20)
+        and torch.all(no_attr[:, 10:] == 0)
+        and torch.equal(no_attr[:, :10], full[:, :10])
+    )
+    assert torch.all(no_vision[:, :10] == 0) and torch.equal(no_vision[:, 10:], full[:, 10:])
+
+
+def test_vae_dreamer_cli_run(pretrained):
+    tmp = pretrained[0]
+    log = run_script(
+        "dreamer_baseline.py", tmp, "--env", "simple_shapes", "--obs", "vae", "--checkpoint-dir",
+        str(tmp / "ck"), *TINY, "--total-steps", "200", "--eval-every", "1000",
+    )  # fmt: skip
+    assert "VAE-Dreamer 2m with custom widths" in log and "done:" in log
+    ck = torch.load(
+        agent_path(tmp / "ck" / "simple_shapes", "dreamer_vae_2m_simple_shapes_s1"), weights_only=False
+    )
+    assert ck["replay"]["data"]["x"].shape[-1] == 20 and "image" not in ck["replay"]["data"]
+
+
+@pytest.fixture(scope="module")
+def rd_run(pretrained_robodesk):
+    """Dreamer (raw) on RoboDesk push_green, 60 steps of 10-step episodes; its policy is an expert."""
+    tmp = pretrained_robodesk[0]
+    log = run_script(
+        "dreamer_baseline.py", tmp, *RD, "--checkpoint-dir", str(tmp / "ck"), *TINY, "--total-steps", "60",
+        "--learning-starts", "20", "--batch-size", "2", "--eval-episodes", "1", "--eval-every", "1000",
+        timeout=600,
+    )  # fmt: skip
+    return tmp, log, agent_path(tmp / "ck" / "robodesk", "dreamer_raw_12m_robodesk_push_green_s1")
+
+
+def test_robodesk_cli_runs_for_both_observations(rd_run):
+    tmp, log, agent = rd_run
+    assert "Dreamer 12m with custom widths on robodesk_push_green" in log and "final_success_count" in log
+    ck = torch.load(agent, weights_only=False)
+    assert ck["state"]["updates"] == (60 - 20) * 16 // 16 and ck["task"] == "push_green"
+    log = run_script(
+        "dreamer_baseline.py", tmp, *RD, "--obs", "vae", "--checkpoint-dir", str(tmp / "ck"), *TINY,
+        "--total-steps", "30", "--learning-starts", "10", "--batch-size", "2", "--eval-episodes", "1",
+        "--eval-every", "1000", timeout=600,
+    )  # fmt: skip
+    assert "VAE-Dreamer 12m" in log and "final_success_count" in log
+
+
+def test_exported_policy_matches_the_agent_and_feeds_the_collector(rd_run, tmp_path):
+    tmp, _, agent = rd_run
+    policy = agent.with_suffix(".policy.pt2")
+    program = P.ExpertProgram(policy)
+    assert program.meta["task"] == "push_green" and program.meta["env"] == "robodesk"
+    # Same weights, same noise: the exported program acts exactly like the agent's own networks.
+    args = small_args(env="robodesk", task="push_green")
+    net = D.Agent("robodesk", D.Observer("robodesk", "raw", None).spaces("robodesk"), args)
+    net.load_state_dict(torch.load(agent, weights_only=False)["agent"])
+    step = D.PolicyStep(net.eval(), D.Observer("robodesk", "raw", None))
+    g = torch.Generator().manual_seed(0)
+    inputs = (torch.randint(0, 255, (3, 64, 64, 3), dtype=torch.uint8, generator=g),
+              torch.randn(3, 76, generator=g), torch.zeros(3, 64), torch.zeros(3, 128), torch.zeros(3, 5),
+              torch.ones(3),
+              torch.rand(3, 32, 4, generator=g), torch.randn(3, 5, generator=g))  # fmt: skip
+    with torch.no_grad():
+        for a, b in zip(step(*inputs), program.program(*inputs), strict=True):
+            assert torch.allclose(a, b, atol=1e-5)
+    # The collector takes the agent checkpoint (or its .policy.pt2) as the push_green expert.
+    log = run_pretrain(tmp_path, "--env", "robodesk", "--stages", "collect", "--n-samples", "30",
+                       "--render-quality", "fast", "--expert-checkpoint", str(agent))  # fmt: skip
+    assert f"expert data of push_green: the dreamer_baseline.py policy {policy}" in log
+    assert P.label_counts(tmp_path / "data" / "robodesk") == {"expert/push_green": 15, "random/": 15}
+    with pytest.raises(ValueError, match="expert for 'push_green', which is not among the tasks collected"):
+        P.load_expert_policies((str(policy),), ["open_slide"])
+    # A policy for a task without a scripted expert makes that task collectable.
+    assert (
+        P.robodesk_plan(P.Args(env="robodesk", task="open_drawer"), 10, ("open_drawer",))[0][1]
+        == "open_drawer"
+    )
+
+
+def test_expert_checkpoint_errors(ss_run, tmp_path):
+    ss_policy = ss_run[2].with_suffix(".policy.pt2")
+    with pytest.raises(ValueError, match="policy for env 'simple_shapes'"):
+        P.load_expert_policies((str(ss_policy),), ["push_green"])
+    with pytest.raises(FileNotFoundError, match="python dreamer_baseline.py --env robodesk"):
+        P.load_expert_policies((str(tmp_path / "none.pt"),), ["push_green"])
+    bad = tmp_path / "bad.policy.pt2"
+    bad.write_bytes(b"not an archive")
+    with pytest.raises(ValueError, match="not a policy exported by dreamer_baseline.py"):
+        P.load_expert_policies((str(bad),), ["push_green"])
+
+
+# --------------------------------------------------------------------------------------------------
+def fixed_batch(agent: D.Agent, spaces: dict, seed: int = 0) -> dict[str, torch.Tensor]:
+    """Sequences of a moving bright square with its position as the attribute: learnable structure."""
+    rng = np.random.default_rng(seed)
+    B, T = 4, 8
+    pos = rng.integers(0, 24, (B, 1, 2)) + np.arange(T)[None, :, None]
+    image = np.zeros((B, T, 32, 32, 3), np.uint8)
+    for b in range(B):
+        for t in range(T):
+            y, x = pos[b, t]
+            image[b, t, y : y + 6, x : x + 6] = 255
+    attr = np.zeros((B, T, 11), np.float32)
+    attr[..., :2] = pos / 32.0
+    return {
+        "image": torch.as_tensor(image), "attr": torch.as_tensor(attr),
+        "action": torch.nn.functional.one_hot(torch.ones(B, T, dtype=torch.long), 7).float(),
+        "reward": torch.as_tensor(-pos.sum(-1) / 32.0, dtype=torch.float32),
+        "terminal": torch.zeros(B, T), "first": torch.zeros(B, T).index_fill_(1, torch.tensor([0]), 1.0),
+    }  # fmt: skip
+
+
+def test_world_model_loss_falls_on_a_fixed_batch():
+    torch.manual_seed(0)
+    args = small_args()
+    spaces = D.Observer("simple_shapes", "raw", None).spaces("simple_shapes")
+    agent = D.Agent("simple_shapes", spaces, args)
+    opt = D.make_optimizers(agent, args)["wm"]
+    batch = fixed_batch(agent, spaces)
+    losses = []
+    for _ in range(60):
+        loss, terms, _ = D.world_model_loss(agent, batch, args)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert losses[-1] < 0.5 * losses[0], losses[::10]
+    assert math.isfinite(terms["kl"].item())
+
+
+def test_symlog_and_two_hot_round_trips():
+    x = torch.tensor([-1e4, -20.0, -1.0, -0.3, 0.0, 0.7, 3.0, 512.0])
+    assert torch.allclose(D.symexp(D.symlog(x)), x, rtol=1e-5)
+    th = D.TwoHot()
+    w = th.encode(x)
+    assert torch.allclose(w.sum(-1), torch.ones(len(x))) and ((w > 0).sum(-1) <= 2).all()
+    assert torch.allclose(th.mean(torch.log(w + 1e-30)), x, rtol=1e-4, atol=1e-4)
+
+
+def test_imagination_gradients_follow_the_actor_gradient_mode():
+    torch.manual_seed(0)
+    args = small_args(env="robodesk")
+    agent = D.Agent("robodesk", D.Observer("robodesk", "raw", None).spaces("robodesk"), args)
+    deter, stoch = torch.randn(6, 64), torch.zeros(6, 128)
+    feats, actions, rewards, conts = D.imagine(agent, deter, stoch, 4, grad=False)
+    assert feats.shape == (5, 6, 64 + 128) and actions.shape == (4, 6, 5) and not feats.requires_grad
+    feats, actions, rewards, conts = D.imagine(agent, deter, stoch, 4, grad=True)
+    loss_actor, loss_critic, _, _ = D.actor_critic_loss(
+        agent, feats, actions, rewards, conts, torch.ones(6), 0.0, 0, args, dynamics=True
+    )
+    # Dynamics backpropagation: the actor's loss reaches its weights through the imagined transitions.
+    first_layer = agent.actor.net[0][0].weight
+    (g_actor,) = torch.autograd.grad(loss_actor, [first_layer], retain_graph=True)
+    assert g_actor.abs().sum() > 0
+    # The critic loss sees detached features: no gradient into the world model.
+    g_wm = torch.autograd.grad(loss_critic, agent.world_model_parameters(), allow_unused=True)
+    assert all(g is None for g in g_wm)
+
+
+def test_bad_input_is_explained(tmp_path, pretrained):
+    with pytest.raises(FileNotFoundError, match="python pretrain_vae_gw.py --env simple_shapes"):
+        D.main(small_args(obs="vae", checkpoint_dir=str(tmp_path)))
+    rd_vae = str(pretrained[0] / "ck" / "simple_shapes" / "vae.pt")
+    with pytest.raises(ValueError, match="made for env 'simple_shapes'.*'robodesk'"):
+        D.main(small_args(env="robodesk", obs="vae", vae_checkpoint=rd_vae))
+    with pytest.raises(ValueError, match="unknown RoboDesk task 'fly'"):
+        D.main(small_args(env="robodesk", task="fly"))
+    with pytest.raises(FileNotFoundError, match="python dreamer_baseline.py --env simple_shapes --obs raw"):
+        D.main(small_args(eval_only=True, checkpoint=str(tmp_path / "none.pt")))
+    with pytest.raises(ValueError, match="multiple of the GRU's 8 blocks"):
+        D.Args(deter=100).resolve()
+    assert D.updates_due(1_000 + 65 * 16, D.Args().resolve()) == 32  # 16 x 65 replayed steps, ratio 32
