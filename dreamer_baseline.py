@@ -622,7 +622,6 @@ class Replay:
     def __init__(self, capacity: int, num_envs: int, spaces: dict, action_dim: int, seed: int):
         self.cap = max(capacity // num_envs, 2)
         self.n = num_envs
-        self.obs_keys = list(spaces)
         self.data = {
             k: np.zeros((num_envs, self.cap, *shape), np.uint8 if k == "image" else np.float32)
             for k, shape in spaces.items()
@@ -721,7 +720,7 @@ def imagine(agent: Agent, deter: torch.Tensor, stoch: torch.Tensor, horizon: int
     with torch.set_grad_enabled(grad):
         feats, actions = [feat_of(deter, stoch)], []
         for _ in range(horizon):
-            a = agent.actor.act(feats[-1].detach() if not grad else feats[-1])
+            a = agent.actor.act(feats[-1])
             deter, stoch = agent.rssm.img_step(deter, stoch, a)
             feats.append(feat_of(deter, stoch))
             actions.append(a)
@@ -747,7 +746,12 @@ def actor_critic_loss(
     max(1, P95 - P5) (EMA). The actor uses REINFORCE, or (``dynamics``) the gradient of the normalised
     lambda-return through the differentiable rollout; both with an entropy bonus. The two-hot critic
     fits the lambda-returns and is regularised toward its slow copy."""
-    values = agent.twohot.mean(agent.critic(feats))  # differentiable through feats when dynamics
+    if dynamics:  # values differentiable through the rollout; the critic's own loss sees detached feats
+        values = agent.twohot.mean(agent.critic(feats))
+        logits = agent.critic(feats[:-1].detach())
+    else:  # the rollout carries no gradient: one critic pass serves the values and the critic loss
+        all_logits = agent.critic(feats)
+        values, logits = agent.twohot.mean(all_logits.detach()), all_logits[:-1]
     returns = lambda_returns(rewards, conts, values, args.gamma, args.lam)  # (H, N)
     with torch.no_grad():
         w = torch.cumprod(torch.cat([torch.ones_like(conts[:1]), conts[:-1]]), 0) * start_w
@@ -762,7 +766,6 @@ def actor_critic_loss(
     else:
         objective = logp * ((returns - values[:-1]) / max(1.0, debiased)).detach()
     loss_actor = -(w * (objective + args.entropy_coef * entropy)).mean()
-    logits = agent.critic(feats[:-1].detach())
     target = returns.detach()
     loss_critic = (w * (agent.twohot.loss(logits, target) + agent.twohot.loss(logits, slow_target))).mean()
     stats = {"return_scale": debiased, "imag_return": returns.mean().item(), "entropy": entropy.mean().item()}
@@ -1235,6 +1238,7 @@ def main(args: Args) -> dict:
                 log_episode(float(ep_ret[i]), float(ep_succ[i]))
             ep_ret[ends], ep_succ[ends] = 0.0, 0.0
             reward[ends], terminal[ends], first[ends] = 0.0, 0.0, 1.0
+            prev_a[torch.as_tensor(ends, device=dev)] = 0.0  # a new episode has no previous action
 
         # Train: the updates owed by the train ratio, once the buffer holds a full sequence.
         while state["updates"] < updates_due(state["env_steps"], args) and replay.ready(args.batch_length):
