@@ -29,7 +29,8 @@ def run_script(script: str, cwd: Path, *args: str, timeout: int = 300) -> str:
 
 
 def tiny_agent_args(module, pretrained, **kw):
-    """``module.Args`` (gw_dreamer or gw_dreamer_e2e) with small batches on the ``pretrained`` checkpoints."""
+    """``module.Args`` (gw_dreamer, gw_dreamer_e2e or dreamer_baseline) with small batches on the
+    ``pretrained`` checkpoints."""
     base = dict(checkpoint_dir=str(pretrained[0] / "ck"), learning_starts=50, batch_size=4, batch_length=8)
     return module.Args(**(base | kw)).resolve()
 

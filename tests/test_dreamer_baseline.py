@@ -3,11 +3,12 @@ ablation, world-model learning, symlog/two-hot, imagination gradients, replay en
 expert policy feeding pretrain_vae_gw.py, errors."""
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
-from conftest import run_pretrain, run_script
+from conftest import run_pretrain, run_script, tiny_agent_args
 
 import dreamer_baseline as D
 import pretrain_vae_gw as P
@@ -19,12 +20,13 @@ TINY = [*SMALL, "--learning-starts", "100", "--batch-size", "4", "--batch-length
 RD = ["--env", "robodesk", "--task", "push_green", "--render-quality", "fast", "--episode-length", "40"]
 
 
-def small_args(**kw) -> D.Args:
-    sizes = dict(deter=64, hidden=32, units=32, cnn_depth=4, classes=4, batch_size=4, batch_length=8)
-    return D.Args(**(sizes | kw)).resolve()
+def small_args(pretrained, **kw) -> D.Args:
+    """``tiny_agent_args`` with the small network widths of SMALL."""
+    sizes = dict(deter=64, hidden=32, units=32, cnn_depth=4, classes=4)
+    return tiny_agent_args(D, pretrained, **(sizes | kw))
 
 
-def agent_path(ck: str, name: str):
+def agent_path(ck: Path, name: str) -> Path:
     return ck / "agents" / f"{name}.pt"
 
 
@@ -71,7 +73,7 @@ def test_replay_holds_dreamerv3_entries(ss_run):
     first, reward, action = replay["first"][0], replay["reward"][0], replay["action"][0]
     starts = np.flatnonzero(first)
     assert starts[0] == 0 and len(starts) >= 2  # 100-step episodes: several in 300 steps
-    assert np.all(reward[starts] == 0)
+    assert np.all(reward[starts] == 0) and np.all(action[starts] == 0)
     assert np.all(action[1:].sum(-1)[first[1:] == 0] == 1)  # one-hot previous actions inside episodes
     assert np.all(np.diff(starts) == 101)  # 100 steps + the final observation's entry
 
@@ -87,7 +89,7 @@ def test_resume_continues_the_saved_run(ss_run):
     assert ck["state"]["env_steps"] == 400 and ck["state"]["updates"] == (400 - 100) * 16 // 32
 
 
-def test_eval_only_with_each_drop_and_size_mismatch(ss_run):
+def test_eval_only_with_each_drop_and_size_mismatch(ss_run, pretrained):
     tmp, _, agent = ss_run
     log = run_script(
         "dreamer_baseline.py", tmp, "--env", "simple_shapes", *SMALL, "--eval-only", "--checkpoint",
@@ -95,7 +97,9 @@ def test_eval_only_with_each_drop_and_size_mismatch(ss_run):
     )  # fmt: skip
     assert "drop=vision: return" in log and "3 episodes" in log
     for drop in ("none", "attr"):
-        out = D.main(small_args(eval_only=True, checkpoint=str(agent), drop=drop, eval_episodes=2))
+        out = D.main(
+            small_args(pretrained, eval_only=True, checkpoint=str(agent), drop=drop, eval_episodes=2)
+        )
         assert out["drop"] == drop and math.isfinite(out["normalised_return"])
     with pytest.raises(ValueError, match="has deter=64 but this run has deter=512"):
         D.main(D.Args(eval_only=True, checkpoint=str(agent)))
@@ -164,13 +168,13 @@ def test_robodesk_cli_runs_for_both_observations(rd_run):
     assert "VAE-Dreamer 12m" in log and "final_success_count" in log
 
 
-def test_exported_policy_matches_the_agent_and_feeds_the_collector(rd_run, tmp_path):
+def test_exported_policy_matches_the_agent_and_feeds_the_collector(rd_run, pretrained, tmp_path):
     tmp, _, agent = rd_run
     policy = agent.with_suffix(".policy.pt2")
     program = P.ExpertProgram(policy)
     assert program.meta["task"] == "push_green" and program.meta["env"] == "robodesk"
     # Same weights, same noise: the exported program acts exactly like the agent's own networks.
-    args = small_args(env="robodesk", task="push_green")
+    args = small_args(pretrained, env="robodesk", task="push_green")
     net = D.Agent("robodesk", D.Observer("robodesk", "raw", None).spaces("robodesk"), args)
     net.load_state_dict(torch.load(agent, weights_only=False)["agent"])
     step = D.PolicyStep(net.eval(), D.Observer("robodesk", "raw", None))
@@ -209,7 +213,7 @@ def test_expert_checkpoint_errors(ss_run, tmp_path):
 
 
 # --------------------------------------------------------------------------------------------------
-def fixed_batch(agent: D.Agent, spaces: dict, seed: int = 0) -> dict[str, torch.Tensor]:
+def fixed_batch(seed: int = 0) -> dict[str, torch.Tensor]:
     """Sequences of a moving bright square with its position as the attribute: learnable structure."""
     rng = np.random.default_rng(seed)
     B, T = 4, 8
@@ -229,13 +233,13 @@ def fixed_batch(agent: D.Agent, spaces: dict, seed: int = 0) -> dict[str, torch.
     }  # fmt: skip
 
 
-def test_world_model_loss_falls_on_a_fixed_batch():
+def test_world_model_loss_falls_on_a_fixed_batch(pretrained):
     torch.manual_seed(0)
-    args = small_args()
+    args = small_args(pretrained)
     spaces = D.Observer("simple_shapes", "raw", None).spaces("simple_shapes")
     agent = D.Agent("simple_shapes", spaces, args)
     opt = D.make_optimizers(agent, args)["wm"]
-    batch = fixed_batch(agent, spaces)
+    batch = fixed_batch()
     losses = []
     for _ in range(60):
         loss, terms, _ = D.world_model_loss(agent, batch, args)
@@ -256,9 +260,9 @@ def test_symlog_and_two_hot_round_trips():
     assert torch.allclose(th.mean(torch.log(w + 1e-30)), x, rtol=1e-4, atol=1e-4)
 
 
-def test_imagination_gradients_follow_the_actor_gradient_mode():
+def test_imagination_gradients_follow_the_actor_gradient_mode(pretrained):
     torch.manual_seed(0)
-    args = small_args(env="robodesk")
+    args = small_args(pretrained, env="robodesk")
     agent = D.Agent("robodesk", D.Observer("robodesk", "raw", None).spaces("robodesk"), args)
     deter, stoch = torch.randn(6, 64), torch.zeros(6, 128)
     feats, actions, rewards, conts = D.imagine(agent, deter, stoch, 4, grad=False)
@@ -278,14 +282,14 @@ def test_imagination_gradients_follow_the_actor_gradient_mode():
 
 def test_bad_input_is_explained(tmp_path, pretrained):
     with pytest.raises(FileNotFoundError, match="python pretrain_vae_gw.py --env simple_shapes"):
-        D.main(small_args(obs="vae", checkpoint_dir=str(tmp_path)))
+        D.main(small_args(pretrained, obs="vae", checkpoint_dir=str(tmp_path)))
     rd_vae = str(pretrained[0] / "ck" / "simple_shapes" / "vae.pt")
     with pytest.raises(ValueError, match="made for env 'simple_shapes'.*'robodesk'"):
-        D.main(small_args(env="robodesk", obs="vae", vae_checkpoint=rd_vae))
+        D.main(small_args(pretrained, env="robodesk", obs="vae", vae_checkpoint=rd_vae))
     with pytest.raises(ValueError, match="unknown RoboDesk task 'fly'"):
-        D.main(small_args(env="robodesk", task="fly"))
+        D.main(small_args(pretrained, env="robodesk", task="fly"))
     with pytest.raises(FileNotFoundError, match="python dreamer_baseline.py --env simple_shapes --obs raw"):
-        D.main(small_args(eval_only=True, checkpoint=str(tmp_path / "none.pt")))
+        D.main(small_args(pretrained, eval_only=True, checkpoint=str(tmp_path / "none.pt")))
     with pytest.raises(ValueError, match="multiple of the GRU's 8 blocks"):
         D.Args(deter=100).resolve()
     assert D.updates_due(1_000 + 65 * 16, D.Args().resolve()) == 32  # 16 x 65 replayed steps, ratio 32
