@@ -146,6 +146,9 @@ class Args:
     """normalised return that defines the return criterion (Simple Shapes)"""
     smoothing: int = 10
     """training episodes in the sliding window of the smoothed return (paper: 10)"""
+    stop_at_criterion: bool = False
+    """end the run (final evaluation, checkpoint) once the return criterion is reached: measures the
+    steps and wall time to the criterion without training on"""
     video_every: int = 50_000
     """environment steps between dream filmstrips (raw observations; 0: only at the end)"""
     log_every: int = 1_000
@@ -1189,7 +1192,10 @@ def main(args: Args) -> dict:
         ):
             state["criterion_step"] = step
             writer.add_scalar("charts/criterion_step", step, step)
-            print(f"[dreamer] return criterion ({args.criterion}) reached at env step {step:,}")
+            print(
+                f"[dreamer] return criterion ({args.criterion}) reached at env step {step:,}, "
+                f"{(time.time() - t0) / 60:.1f} min into this run"
+            )
 
     # ------------------------------------------------------------------------------------------
     envs_ = make_envs(args, args.num_envs)
@@ -1203,6 +1209,8 @@ def main(args: Args) -> dict:
     rng = np.random.default_rng(args.seed + state["env_steps"])
     t0, steps0, last_log = time.time(), state["env_steps"], {}
     while state["env_steps"] < args.total_steps:
+        if args.stop_at_criterion and state["criterion_step"] is not None:
+            break
         # Store the entry (o_t, a_{t-1}, r_t, terminal_t, first_t), then act on the filtered state.
         o = observer(*as_tensors(obs, dev))
         entry = {k: v.cpu().numpy() for k, v in o.items()}

@@ -118,6 +118,9 @@ class Args:
     """normalised return that defines the return criterion (Simple Shapes)"""
     smoothing: int = 10
     """training episodes in the sliding window of the smoothed return (paper: 10)"""
+    stop_at_criterion: bool = False
+    """end the run (final evaluation, checkpoint) after the rollout in which the return criterion is
+    reached: measures the steps and wall time to the criterion without training on"""
     eval_episodes: int = 10
     """episodes for --eval-only and the final evaluation"""
     save_every: int = 1
@@ -693,7 +696,10 @@ def main(args: Args) -> dict:
         ):
             state["criterion_step"] = step
             writer.add_scalar("charts/criterion_step", step, step)
-            print(f"[ppo] return criterion ({args.criterion}) reached at env step {step:,}")
+            print(
+                f"[ppo] return criterion ({args.criterion}) reached at env step {step:,}, "
+                f"{(time.time() - t0) / 60:.1f} min into this run"
+            )
 
     # Rollout storage (T, N, ...); observations keep the stacked frames the policy saw.
     envs_ = make_envs(args, args.num_envs)
@@ -711,6 +717,8 @@ def main(args: Args) -> dict:
     t0, steps0, stats = time.time(), state["env_steps"], {}
 
     while state["iteration"] < num_iterations:
+        if args.stop_at_criterion and state["criterion_step"] is not None:
+            break
         state["iteration"] += 1
         if args.anneal_lr:
             frac = 1.0 - (state["iteration"] - 1.0) / num_iterations

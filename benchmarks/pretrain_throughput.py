@@ -1,8 +1,12 @@
 """Training throughput (samples/s) and training FLOPs per sample (forward + backward, counted with
 torch.utils.flop_counter) of each pre-training stage of pretrain_vae_gw.py, per environment, at the
-paper's widths; multiply FLOPs/sample by batch x steps to compare with the paper's FLOPs table.
+paper's widths; multiply FLOPs/sample by batch x steps to compare with the paper's FLOPs table. A timed
+update is what the stage runs: loss, backward and the AdamW step, with the script's memory settings
+(channels-last visual VAE, glibc allocator thresholds).
 
     python benchmarks/pretrain_throughput.py
+    python benchmarks/pretrain_throughput.py --envs simple_shapes --vae-width 64 --batch-size 128 \
+        --gw-batch-size 256        # the --cpu-preset settings: updates/s give the stage times
 """
 
 import sys
@@ -28,6 +32,8 @@ class Args:
     """environments to measure"""
     vae_width: int = 1024
     """visual VAE width (1024 as in the paper's tables)"""
+    gw_batch_size: int | None = None
+    """samples per timed GW update (default: --batch-size)"""
 
 
 def measure(step, batch: int, updates: int) -> tuple[float, float]:
@@ -40,32 +46,48 @@ def measure(step, batch: int, updates: int) -> tuple[float, float]:
     return batch * updates / (time.perf_counter() - t), counter.get_total_flops() / batch
 
 
-def stage_steps(env: str, batch: int, vae_width: int) -> dict:
-    """One training update (loss, backward) of each stage on random inputs of the env's shapes."""
+def stage_steps(env: str, batch: int, gw_batch: int, vae_width: int) -> dict:
+    """One training update (loss, backward, AdamW step) of each stage on random inputs of the env's
+    shapes, as pretrain_vae_gw.py runs it: {stage: (update, batch)}."""
     spec = P.ENV_SPECS[env]
     vae_v, vae_attr = P.make_vaes(env, vae_width)
+    vae_v.to(memory_format=torch.channels_last)
     gw = P.GlobalWorkspace(spec["latent"], spec["z"], spec["gw_hidden"])
-    x = torch.rand(batch, 3, spec["image"], spec["image"])
+    x = P.images_to_tensor(
+        torch.randint(0, 256, (batch, spec["image"], spec["image"], 3), dtype=torch.uint8), "cpu"
+    )
     a = torch.randn(batch, spec["attr"])
     if env == "simple_shapes":
         a[:, :3] = torch.eye(3)[torch.randint(0, 3, (batch,))]
-    u = {"v": torch.randn(batch, spec["latent"]), "attr": torch.randn(batch, spec["latent"])}
-    alpha = torch.rand(batch, 1)
+    u = {"v": torch.randn(gw_batch, spec["latent"]), "attr": torch.randn(gw_batch, spec["latent"])}
+    alpha = torch.rand(gw_batch, 1)
+    opt_v, opt_a = (torch.optim.AdamW(m.parameters(), lr=1e-4) for m in (vae_v, vae_attr))
+    opt_gw = torch.optim.AdamW(gw.parameters(), lr=1e-4, fused=True)
+
+    def update(opt, loss):
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
 
     def gw_step():
         terms = P.gw_losses(gw, u, alpha, 0.07)
-        sum(P.PRESETS["gw"][k] * terms[k] for k in terms).backward()
+        update(opt_gw, sum(P.PRESETS["gw"][k] * terms[k] for k in terms))
 
     return {
-        "visual VAE": lambda: vae_v.loss(x, 0.1)[0].backward(),
-        "attribute VAE": lambda: vae_attr.loss(a, 0.05)[0].backward(),
-        "GW": gw_step,
+        "visual VAE": (lambda: update(opt_v, vae_v.loss(x, 0.1)[0]), batch),
+        "attribute VAE": (lambda: update(opt_a, vae_attr.loss(a, 0.05)[0]), batch),
+        "GW": (gw_step, gw_batch),
     }
 
 
 if __name__ == "__main__":
     args = tyro.cli(Args)
+    P.keep_freed_memory()
+    gw_batch = args.gw_batch_size or args.batch_size
     for env in args.envs:
-        for name, fn in stage_steps(env, args.batch_size, args.vae_width).items():
-            rate, flops = measure(fn, args.batch_size, args.updates if name == "visual VAE" else 20)
-            print(f"{env:<14s} {name:<14s} {rate:>10,.0f} samples/s {flops:>12.3e} training FLOPs/sample")
+        for name, (fn, batch) in stage_steps(env, args.batch_size, gw_batch, args.vae_width).items():
+            rate, flops = measure(fn, batch, args.updates if name == "visual VAE" else 100)
+            print(
+                f"{env:<14s} {name:<14s} batch {batch:>5d} {rate:>10,.0f} samples/s {rate / batch:>8.1f} "
+                f"updates/s {flops:>12.3e} training FLOPs/sample"
+            )

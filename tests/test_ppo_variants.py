@@ -81,6 +81,18 @@ def test_a_short_run_beats_the_random_policy(tmp_path, monkeypatch):
     assert out["final_normalised_return"] > 0.25, out
 
 
+def test_stop_at_criterion_ends_the_run_after_that_rollout(pretrained, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # its runs/ folder
+    small = dict(num_envs=2, num_steps=64, update_epochs=1, minibatch_size=64, eval_episodes=1, seed=7)
+    # every policy meets a criterion of -100 (normalised): it is reached at the first episode's end
+    small |= dict(variant="vae", checkpoint_dir=str(pretrained[0] / "ck"), criterion=-100.0, smoothing=1)
+    out = PPO.main(PPO.Args(total_steps=128 * 40, stop_at_criterion=True, **small))
+    assert out["criterion_step"] is not None and out["env_steps"] < 128 * 40
+    assert out["env_steps"] - 128 < out["criterion_step"] <= out["env_steps"]  # the rollout it was met in
+    out = PPO.main(PPO.Args(total_steps=128 * 4, **small))
+    assert out["env_steps"] == 128 * 4  # without the flag the run goes on
+
+
 def test_resume_continues_the_saved_run(ss_runs):
     tmp, _ = ss_runs
     log = run_script(
