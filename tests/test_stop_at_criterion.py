@@ -12,7 +12,7 @@ import gw_dreamer_e2e as E
 SMALL = {
     G: dict(imag_starts=32, imag_horizon=5, train_ratio=10.0),
     E: dict(imag_starts=32, imag_horizon=5, train_ratio=10.0, gw_batch_size=64),
-    D: dict(deter=64, hidden=32, units=32, cnn_depth=4, classes=4, train_ratio=32.0),
+    D: dict(deter=64, hidden=32, units=32, cnn_depth=4, classes=4, train_ratio=4.0),
 }
 
 
