@@ -28,6 +28,10 @@ def run_script(script: str, cwd: Path, *args: str, timeout: int = 300) -> str:
     return out.stdout
 
 
+# Small dreamer_baseline.py widths for tests (its --size presets are 2M parameters and up).
+DREAMER_SMALL = dict(deter=64, hidden=32, units=32, cnn_depth=4, classes=4)
+
+
 def tiny_agent_args(module, pretrained, **kw):
     """``module.Args`` (gw_dreamer, gw_dreamer_e2e or dreamer_baseline) with small batches on the
     ``pretrained`` checkpoints."""

@@ -8,12 +8,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import run_pretrain, run_script, tiny_agent_args
+from conftest import DREAMER_SMALL, run_pretrain, run_script, tiny_agent_args
 
 import dreamer_baseline as D
 import pretrain_vae_gw as P
 
-SMALL = ["--deter", "64", "--hidden", "32", "--units", "32", "--cnn-depth", "4", "--classes", "4"]
+SMALL = [arg for k, v in DREAMER_SMALL.items() for arg in (f"--{k.replace('_', '-')}", str(v))]
 TINY = [*SMALL, "--learning-starts", "100", "--batch-size", "4", "--batch-length", "8",
         "--train-ratio", "16", "--imag-horizon", "5", "--eval-episodes", "2", "--video-every", "0",
         "--log-every", "100"]  # fmt: skip
@@ -21,9 +21,8 @@ RD = ["--env", "robodesk", "--task", "push_green", "--render-quality", "fast", "
 
 
 def small_args(pretrained, **kw) -> D.Args:
-    """``tiny_agent_args`` with the small network widths of SMALL."""
-    sizes = dict(deter=64, hidden=32, units=32, cnn_depth=4, classes=4)
-    return tiny_agent_args(D, pretrained, **(sizes | kw))
+    """``tiny_agent_args`` with the small network widths of DREAMER_SMALL."""
+    return tiny_agent_args(D, pretrained, **(DREAMER_SMALL | kw))
 
 
 def agent_path(ck: Path, name: str) -> Path:

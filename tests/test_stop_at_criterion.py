@@ -3,7 +3,7 @@ criterion is reached, and goes on without the flag. (ppo_variants.py, which stop
 is tested in test_ppo_variants.py.)"""
 
 import pytest
-from conftest import tiny_agent_args
+from conftest import DREAMER_SMALL, tiny_agent_args
 
 import dreamer_baseline as D
 import gw_dreamer as G
@@ -12,7 +12,7 @@ import gw_dreamer_e2e as E
 SMALL = {
     G: dict(imag_starts=32, imag_horizon=5, train_ratio=10.0),
     E: dict(imag_starts=32, imag_horizon=5, train_ratio=10.0, gw_batch_size=64),
-    D: dict(deter=64, hidden=32, units=32, cnn_depth=4, classes=4, train_ratio=4.0),
+    D: DREAMER_SMALL | dict(train_ratio=4.0),
 }
 
 
