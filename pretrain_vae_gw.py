@@ -5,7 +5,7 @@ Paper: "Model / Global Workspace" (eq. 1-3), appendix "VAE details" and "GW deta
 
     python pretrain_vae_gw.py --env simple_shapes                       # collect, vae, gw (paper scale)
     python pretrain_vae_gw.py --env simple_shapes --loss-preset clip --stages gw   # CLIP-like model
-    python pretrain_vae_gw.py --env simple_shapes --cpu-preset          # ~19 min on a 2-core CPU
+    python pretrain_vae_gw.py --env simple_shapes --cpu-preset          # ~16 min on a 2-core CPU
 
 Stages run in the order collect -> vae -> gw; each can run alone (``--stages vae``). Outputs go to
 ``checkpoints/<env>/{vae,gw,clip}.pt`` (data to ``data/<env>/``), where the agents find them.
@@ -61,7 +61,7 @@ class Args:
     device: str = "cuda" if torch.cuda.is_available() else "cpu"
     """torch device"""
     cpu_preset: bool = False
-    """small settings that give a usable Simple Shapes GW on a 2-core CPU in about 19 minutes
+    """small settings that give a usable Simple Shapes GW on a 2-core CPU in about 16 minutes
     (60k samples; VAE width 64, 5,000 steps of batch 128, beta_attr 0.005 with 4 attribute updates
     per step; 60,000 GW steps of batch 256); flags left at their paper default take the preset's value"""
 
@@ -461,7 +461,6 @@ def collect_robodesk(args: Args, folder: Path, need: int, have: int, seed: int, 
             for key in buf:
                 del buf[key][:k]
             have += k
-            progress.show(have)
 
     rng = np.random.default_rng(seed)
     for b, (source, task, n) in enumerate(blocks):
@@ -491,6 +490,8 @@ def collect_robodesk(args: Args, folder: Path, need: int, have: int, seed: int, 
                 obs, _, term, trunc, _ = env.step(action)
                 done = term or trunc
             flush(False)
+            # one line per episode (a 50k-sample shard is a quarter of an hour of RoboDesk on a CPU)
+            progress.show(have + len(buf["attr"]), f"({source}, {task})")
         env.close()
     flush(True)
 

@@ -77,8 +77,8 @@ def measure(env: str, variant: str, a: Args) -> dict:
     batch = {k: v.repeat(reps, *[1] * (v.dim() - 1))[:n] for k, v in batch.items()}
     with torch.no_grad():
         actions, logp, _, values = agent.get_action_and_value(batch)
-    mb = {"obs": batch, "actions": actions, "logprobs": logp, "advantages": torch.randn(n),
-          "returns": torch.randn(n), "values": values}  # fmt: skip
+    mb = {"obs": batch, "actions": actions, "logprobs": logp, "advantages": torch.randn(n, device=a.device),
+          "returns": torch.randn(n, device=a.device), "values": values}  # fmt: skip
     opt = torch.optim.Adam(agent.parameters(), lr=3e-4)
 
     def update():
@@ -88,9 +88,12 @@ def measure(env: str, variant: str, a: Args) -> dict:
         opt.step()
 
     _, flops = PPO.count_flops(update)
+    sync = torch.cuda.synchronize if a.device.startswith("cuda") else (lambda: None)
+    sync()  # GPU work is asynchronous: time from and to an idle device
     t = time.perf_counter()
     for _ in range(a.minibatches):
         update()
+    sync()
     per_mb = (time.perf_counter() - t) / a.minibatches
     rollout = args.num_envs * args.num_steps
     n_mb = args.update_epochs * (rollout // n)

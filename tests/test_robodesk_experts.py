@@ -55,6 +55,7 @@ def test_collector_mixes_sources_and_labels_every_sample(tmp_path):
             "--render-quality", "fast", "--shard-size", "25"]  # fmt: skip
     log = run_pretrain(tmp_path, *args, "--n-samples", "60")
     assert "20 expert (push_green), 20 expert (open_slide), 20 random" in log
+    assert "[collect] 40/60" in log and "(expert, open_slide)" in log  # a progress line per episode
     folder = tmp_path / "data" / "robodesk"
     assert [len(np.load(p)["attr"]) for p in P.shard_paths(folder)] == [25, 25, 10]
     assert P.label_counts(folder) == {"expert/open_slide": 20, "expert/push_green": 20, "random/": 20}
