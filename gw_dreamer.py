@@ -1009,6 +1009,9 @@ def main(args: Args) -> dict:
                     a = torch.as_tensor(rng.uniform(-1, 1, (args.num_envs, action_dim)))
                 a = a.float().to(dev)
             else:
+                # The actor reads h_t, which has seen z_{t-1} and a_{t-1} but not z_t: the GRU takes z_t
+                # together with a_t (WM inputs [z_t, a_t]; actor input = the GRU state in the AC tables),
+                # so an episode's first action comes from h = 0, in dreams as here.
                 a = agent.actor.act(h)
             h = agent.wm.step(h, z, a)
         obs, r, term, trunc, info = envs_.step(action_for_env(a, discrete))

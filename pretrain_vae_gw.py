@@ -69,6 +69,10 @@ class Args:
     n_samples: int | None = None
     """samples to collect (default: 500,000 Simple Shapes; RoboDesk 2,000,000, the paper's 1M random + 1M
     expert; use 3,500,000 for its six-task dataset)"""
+    wide_share: float = 0.0
+    """Simple Shapes: share of samples whose position is drawn from 16 px before to 16 px past the frame
+    (envs.simple_shapes.WIDE_POSITIONS) instead of the dataset's [7, 25), so that the frozen GW also
+    represents the states an agent reaches by pushing the shape out (0: the paper's dataset draw)"""
     expert_checkpoint: tuple[str, ...] = ()
     """RoboDesk expert policies from dreamer_baseline.py (its <agent>.policy.pt2 files, or the agent .pt
     beside them), one per task: each collects its own task's expert share instead of the scripted expert"""
@@ -145,6 +149,10 @@ class Args:
 
     def resolve(self) -> Args:
         """The tables' defaults, then the CPU preset (if asked) for every flag left at its default."""
+        if not 0.0 <= self.wide_share <= 1.0 or (self.wide_share and self.env != "simple_shapes"):
+            raise ValueError(
+                f"--wide-share is a share in [0, 1] for --env simple_shapes, got {self.wide_share}"
+            )
         self.resolve_tables()
         if self.cpu_preset:
             defaults = Args(env=self.env).resolve_tables()
@@ -321,8 +329,8 @@ def collect(args: Args) -> None:
 
         while need > 0:
             n = min(args.shard_size, need)
-            d = sample_dataset(n, seed=rng_seed)
-            write_shard(folder, d["image"], d["attr"], "random", "")
+            d = sample_dataset(n, seed=rng_seed, wide_share=args.wide_share)
+            write_shard(folder, d["image"], d["attr"], np.where(d["wide"], "random_wide", "random"), "")
             rng_seed, need, have = rng_seed + 1, need - n, have + n
             progress.show(have)
         return
@@ -902,7 +910,17 @@ def evaluate_gw(args, gw, vae_v, vae_attr, vae_ckpt, images, attrs, u_v, u_a, n_
     """Held-out figures: translations image -> attributes and attributes -> image, and the Figure 2
     grid (translation, demi-cycle, fusion) on incongruent image / attribute pairs."""
     dev = u_v.device
-    ev = torch.arange(min(n_eval, 1000), device=dev)
+    held_out = np.arange(n_eval)
+    wide = held_out[:0]
+    if args.env == "simple_shapes":
+        from envs.simple_shapes import IMAGE_SIZE, MARGIN
+
+        # The figures describe the dataset's draw (positions in [7, 25)); samples of --wide-share that
+        # fall outside it get a figure of their own below.
+        pos = (attrs[:n_eval, 3:5] + 1) / 2 * IMAGE_SIZE
+        inside = np.all((pos > MARGIN - 0.5) & (pos < IMAGE_SIZE - MARGIN - 0.5), axis=1)
+        held_out, wide = held_out[inside], held_out[~inside][:1000]
+    ev = torch.as_tensor(held_out[:1000], device=dev)
     figures = {}
     with torch.no_grad():
         z_from_v = gw.fuse(u_v[ev], u_a[ev], 1.0, 0.0)  # alpha_v = 1: vision only
@@ -935,6 +953,13 @@ def evaluate_gw(args, gw, vae_v, vae_attr, vae_ckpt, images, attrs, u_v, u_a, n_
             )
             d_rot = np.abs((s_fused["rotation"] - s_true["rotation"] + np.pi) % (2 * np.pi) - np.pi)
             figures["fusion_to_rotation_error_rad"] = float(d_rot.mean())
+            if len(wide):  # positions past the dataset's range: is z still telling them apart?
+                w = torch.as_tensor(wide, device=dev)
+                wide_hat = vae_attr.decode(gw.d["attr"](gw.fuse(u_v[w], u_a[w], 0.5, 0.5))).cpu().numpy()
+                wide_hat = wide_hat * vae_ckpt["attr_std"] + vae_ckpt["attr_mean"]
+                # positions read without attr_to_state's clipping to the frame
+                err = (wide_hat[:, 3:5] - attrs[wide, 3:5]) / 2 * IMAGE_SIZE
+                figures["fusion_to_position_error_px_outside"] = float(np.linalg.norm(err, axis=1).mean())
         else:
             figures["tr_image_to_attr_mse_standardised"] = float(
                 (((attr_hat - true_attr) / vae_ckpt["attr_std"]) ** 2).mean()

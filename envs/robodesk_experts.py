@@ -26,6 +26,7 @@ import numpy as np
 STEP = 0.04  # metres the end effector may move per agent step (0.01 per unit action x 4 repeats)
 OPEN, CLOSED = 1.0, -1.0  # gripper action
 BIN_X = 0.40  # x of the bin's centre (its walls stand at 0.28 and 0.52)
+DESK_Z = 0.76  # height of the desk top (the upright block's base at reset)
 
 
 class WaypointExpert:
@@ -88,16 +89,23 @@ def _slide(env):
     ]
 
 
-def _push_off_right(obj: str, height: float):
-    """Beside the object on its left (-x), at ``height`` above its centre, then push it right (+x) past
-    the desk's edge."""
+def _push_off_right(obj: str):
+    """Behind the object's left end (-x), low over the desk, then push it right (+x) past the desk's edge.
+    The push point is 4.5 cm above the desk for the end-effector site, as low as the hand gets (it
+    stalls about 7 cm up when the fingers meet the desk, hence the loose tolerance there). The tall
+    upright block tips over under the push (friction beats its 2.3 cm half-width); the left end is read
+    from the box's current orientation, so the push goes on against the lying block. Pushing at the
+    block's mid-height instead lost the tipped block in 11 of 20 episodes (README)."""
 
     def plan(env):
         p = env._xpos(obj)
+        geom = env.model.body_geomadr[env.model.body(obj).id]
+        half = np.abs(env.data.geom_xmat[geom].reshape(3, 3)) @ env.model.geom_size[geom]  # world extents
+        behind = np.array([p[0] - half[0] - 0.05, p[1], DESK_Z + 0.045])
         return [
-            (p + [-0.10, 0.0, 0.10], CLOSED, 0.02),
-            (p + [-0.08, 0.0, height], CLOSED, 0.02),
-            (p + [0.30, 0.0, height], CLOSED, 0.0),
+            (behind + [0.0, 0.0, 0.10], CLOSED, 0.02),
+            (behind, CLOSED, 0.04),
+            (np.array([p[0] + 0.30, p[1], behind[2]]), CLOSED, 0.0),
         ]
 
     return plan
@@ -150,7 +158,7 @@ PLANS = {
     "push_blue": _button("blue"),
     "open_slide": _slide,
     "open_drawer": _drawer,
-    "upright_block_off_table": _push_off_right("upright_block", 0.0),
+    "upright_block_off_table": _push_off_right("upright_block"),
     "flat_block_in_bin": _flat_block_to_bin,
 }
 

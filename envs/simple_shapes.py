@@ -586,13 +586,28 @@ class SimpleShapesVectorEnv(gym.vector.VectorEnv):
         return None
 
 
-def sample_dataset(n: int, seed: int = 0) -> dict[str, np.ndarray]:
+# Positions the wider share of ``sample_dataset`` draws from: up to 16 px past each border, where the
+# largest shape (reaching 0.6 x 14 px from its centre) has wholly left the frame.
+WIDE_POSITIONS = (-16, IMAGE_SIZE + 16)
+
+
+def sample_dataset(n: int, seed: int = 0, wide_share: float = 0.0) -> dict[str, np.ndarray]:
     """n paired observations of random states (the paper's 500,000-sample pre-training data):
-    ``{"image": (n, 32, 32, 3) uint8, "attr": (n, 11) float32}``."""
-    st = sample_states(np.random.default_rng(seed), n)
+    ``{"image": (n, 32, 32, 3) uint8, "attr": (n, 11) float32, "wide": (n,) bool}``.
+
+    ``wide_share`` of the samples (drawn at random) take their position uniformly from
+    ``WIDE_POSITIONS`` instead of the initial-state range [7, 25): states at and past the border, which
+    an agent reaches by pushing the shape out but which the dataset's draw never shows."""
+    if not 0.0 <= wide_share <= 1.0:
+        raise ValueError(f"wide_share must be in [0, 1], got {wide_share}")
+    rng = np.random.default_rng(seed)
+    st = sample_states(rng, n)
+    if wide_share > 0:
+        wide = rng.random(n) < wide_share
+        st["pos"][wide] = rng.integers(*WIDE_POSITIONS, (int(wide.sum()), 2))
     images = render_shapes(st["cls"], st["pos"][:, 0], st["pos"][:, 1], st["size"], st["rotation"], st["rgb"])
     attr = state_to_attr(st["cls"], st["pos"], st["size"], st["rotation"], st["rgb"])
-    return {"image": images, "attr": attr}
+    return {"image": images, "attr": attr, "wide": wide if wide_share > 0 else np.zeros(n, bool)}
 
 
 def reference_returns(episodes: int = 1_000, seed: int = 10_000) -> tuple[float, float]:

@@ -274,6 +274,28 @@ def test_dataset_is_reproducible_and_in_range():
     assert len(OUTLINES) == 3
 
 
+def test_dataset_wide_share_places_that_share_past_the_border():
+    from envs.simple_shapes import WIDE_POSITIONS
+
+    d = sample_dataset(4000, seed=5, wide_share=0.25)
+    assert abs(d["wide"].mean() - 0.25) < 0.03
+    pos = (d["attr"][:, 3:5] + 1) / 2 * 32
+    inside = np.all((pos >= 7) & (pos <= 24), axis=1)
+    assert inside[~d["wide"]].all()  # the rest keep the dataset's draw
+    wide = pos[d["wide"]]
+    assert wide.min() == WIDE_POSITIONS[0] and wide.max() == WIDE_POSITIONS[1] - 1
+    # a shape centred 16 px past the border has left the frame: its image is black
+    far = np.any((pos < -10) | (pos > 41), axis=1)
+    assert far.any() and np.all(d["image"][far].max(axis=(1, 2, 3)) == 0)
+    # the other attributes are those of the plain draw from the same seed: only positions move
+    plain = sample_dataset(4000, seed=5)
+    keep = [0, 1, 2, 5, 6, 7, 8, 9, 10]
+    np.testing.assert_array_equal(d["attr"][:, keep], plain["attr"][:, keep])
+    np.testing.assert_array_equal(d["attr"][~d["wide"]], plain["attr"][~d["wide"]])
+    with pytest.raises(ValueError, match="wide_share"):
+        sample_dataset(4, wide_share=1.5)
+
+
 def test_reference_returns_bracket_the_normalised_return():
     """0 = uniformly random policy, 1 = greedy policy; the greedy policy reaches the goal in every episode
     (it never takes more steps than |dx| + |dy| + the rotation steps), the random one almost never."""
