@@ -47,11 +47,10 @@ def run_pretrain(tmp_path: Path, *extra: str) -> str:
 
 @pytest.fixture(scope="session")
 def pretrained(tmp_path_factory):
-    """Tiny Simple Shapes run of all three stages (a quarter of the samples at wide positions), then the
-    CLIP-like preset on the same VAEs:
+    """Tiny Simple Shapes run of all three stages, then the CLIP-like preset on the same VAEs:
     (folder, log, clip log) with checkpoints in folder/ck/simple_shapes/{vae,gw,clip}.pt."""
     tmp = tmp_path_factory.mktemp("ss")
-    log = run_pretrain(tmp, "--env", "simple_shapes", "--wide-share", "0.25")
+    log = run_pretrain(tmp, "--env", "simple_shapes")
     log_clip = run_pretrain(tmp, "--env", "simple_shapes", "--stages", "gw", "--loss-preset", "clip")
     return tmp, log, log_clip
 
