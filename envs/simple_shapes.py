@@ -602,12 +602,11 @@ def sample_dataset(n: int, seed: int = 0, wide_share: float = 0.0) -> dict[str, 
         raise ValueError(f"wide_share must be in [0, 1], got {wide_share}")
     rng = np.random.default_rng(seed)
     st = sample_states(rng, n)
-    if wide_share > 0:
-        wide = rng.random(n) < wide_share
-        st["pos"][wide] = rng.integers(*WIDE_POSITIONS, (int(wide.sum()), 2))
+    wide = rng.random(n) < wide_share  # drawn after the states: a share of 0 keeps the dataset's draw
+    st["pos"][wide] = rng.integers(*WIDE_POSITIONS, (int(wide.sum()), 2))
     images = render_shapes(st["cls"], st["pos"][:, 0], st["pos"][:, 1], st["size"], st["rotation"], st["rgb"])
     attr = state_to_attr(st["cls"], st["pos"], st["size"], st["rotation"], st["rgb"])
-    return {"image": images, "attr": attr, "wide": wide if wide_share > 0 else np.zeros(n, bool)}
+    return {"image": images, "attr": attr, "wide": wide}
 
 
 def reference_returns(episodes: int = 1_000, seed: int = 10_000) -> tuple[float, float]:
