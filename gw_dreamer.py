@@ -144,6 +144,10 @@ class Args:
     """only evaluate --checkpoint (the modality ablation with --drop) and exit"""
     drop: Literal["none", "vision", "attr"] = "none"
     """modality removed at evaluation: vision -> alpha = (0, 1), attr -> alpha = (1, 0)"""
+    ac_input: Literal["h", "hz"] = "h"
+    """what the actor and critic read. h: the GRU state h_t, as the tables' input sizes (64, 1024) and the
+    text say. hz: [h_t, z_t], the real z_t when acting and the world model's z in dreams (DreamerV3's and
+    World Models' controller input); an experiment, not the paper's reading (README, GW-Dreamer status)"""
     z_source: Literal["gw", "attributes"] = "gw"
     """gw: the paper's z_t. attributes: a control, not a paper variant (Simple Shapes only): z_t is the
     true attribute vector (its first 10 entries, clipped to [-1, 1]) instead of the GW's, which tests the
@@ -565,18 +569,23 @@ def world_model_loss(wm, reward_dec, batch: dict[str, torch.Tensor], args: Args)
     return loss, {"loss_z": loss_z, "loss_r": loss_r, "loss_d": loss_d}, h_before, valid
 
 
-def imagine(wm, actor, reward_dec, h0: torch.Tensor, z0: torch.Tensor, horizon: int):
+def imagine(wm, actor, reward_dec, h0: torch.Tensor, z0: torch.Tensor, horizon: int, ac_input: str = "h"):
     """Dream ``horizon`` steps from replayed states (h_t, z_t): the real z_t is given only at the first
     step, then the world model's own predictions (paper Figure 3 (2)). No gradient flows through the
-    world model or the sampled actions."""
+    world model or the sampled actions. Returns the actor-critic's inputs (h_k, or [h_k, z_k] with
+    ``ac_input="hz"``), actions, rewards and continuation probabilities."""
+
+    def feat(h, z):
+        return torch.cat([h, z], -1) if ac_input == "hz" else h
+
     with torch.no_grad():
-        hs, actions, rewards, conts = [h0], [], [], []
+        hs, actions, rewards, conts = [feat(h0, z0)], [], [], []
         h, z = h0, z0
         for _ in range(horizon):
-            a = actor.act(h)
+            a = actor.act(hs[-1])
             h = wm.step(h, z, a)
             z, r_out, d_logit = wm.heads(h)
-            hs.append(h)
+            hs.append(feat(h, z))
             actions.append(a)
             rewards.append(reward_dec.value(r_out))
             conts.append(1 - torch.sigmoid(d_logit))
@@ -671,16 +680,22 @@ def action_for_env(a: torch.Tensor, discrete: bool) -> np.ndarray:
 class Agent(nn.Module):
     """The trainable part of GW-Dreamer: world model, actor, critic (and the slow critic)."""
 
-    def __init__(self, env: str, z_dim: int, reward_loss: str):
+    def __init__(self, env: str, z_dim: int, reward_loss: str, ac_input: str = "h"):
         super().__init__()
         s = SIZES[env]
         self.discrete = env == "simple_shapes"
+        self.ac_input = ac_input
         self.twohot = TwoHot()
         self.wm = WorldModel(env, z_dim, s["actions"], 255 if reward_loss == "twohot" else 1)
-        self.actor = Actor(s["gru_hidden"], s["actions"], s["ac_layers"], self.discrete)
-        self.critic = Critic(s["gru_hidden"], s["ac_layers"])
+        ac_in = s["gru_hidden"] + (z_dim if ac_input == "hz" else 0)
+        self.actor = Actor(ac_in, s["actions"], s["ac_layers"], self.discrete)
+        self.critic = Critic(ac_in, s["ac_layers"])
         self.slow_critic = copy.deepcopy(self.critic).requires_grad_(False)
         self.reward_dec = RewardDecoder(reward_loss, self.twohot)
+
+    def features(self, h: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """The actor-critic's input for GRU state h and current z (--ac-input)."""
+        return torch.cat([h, z], -1) if self.ac_input == "hz" else h
 
 
 @torch.no_grad()
@@ -696,7 +711,7 @@ def run_episodes(agent: Agent, encoder: FrozenEncoder, args: Args, n: int, drop:
     alive = np.ones(n, bool)
     while alive.any():
         z = encoder(obs, *alpha)
-        a = agent.actor.act(h)
+        a = agent.actor.act(agent.features(h, z))
         obs, r, term, trunc, info = envs_.step(action_for_env(a, agent.discrete))
         returns += r * alive
         successes += step_success(info, n) * alive
@@ -720,7 +735,7 @@ def dream_filmstrip(agent: Agent, encoder: FrozenEncoder, args: Args, steps: int
     real, dream = [obs["image"][0]], [encoder.decode_image(z_dream)]
     for _ in range(steps - 1):
         z = encoder(obs)
-        a = agent.actor.act(h, mode=True)
+        a = agent.actor.act(agent.features(h, z), mode=True)
         obs, _, term, trunc, info = env.step(action_for_env(a, agent.discrete))
         h = agent.wm.step(h, z, a)
         h_dream = agent.wm.step(h_dream, z_dream, a)
@@ -752,8 +767,9 @@ def gw_fingerprint(encoder: FrozenEncoder) -> float:
     return float(sum(p.double().sum() for p in encoder.parameters()))
 
 
-def load_agent_checkpoint(path: Path, env: str, fingerprint: float) -> dict:
-    """An agent checkpoint of ``env`` trained on the frozen weights whose fingerprint is given."""
+def load_agent_checkpoint(path: Path, env: str, fingerprint: float, ac_input: str = "h") -> dict:
+    """An agent checkpoint of ``env`` trained on the frozen weights whose fingerprint is given, with
+    the actor-critic input ``ac_input``."""
     if not path.is_file():
         raise FileNotFoundError(
             f"no agent checkpoint at {path}; train one with `python gw_dreamer.py --env {env}`"
@@ -767,6 +783,9 @@ def load_agent_checkpoint(path: Path, env: str, fingerprint: float) -> dict:
         raise ValueError(
             f"{path} was trained on other VAE/GW weights ({ckpt['vae_checkpoint']}, {ckpt['gw_checkpoint']})"
         )
+    trained = ckpt["args"].get("ac_input", "h")
+    if trained != ac_input:
+        raise ValueError(f"{path} was trained with --ac-input {trained}; pass --ac-input {trained}")
     return ckpt
 
 
@@ -807,7 +826,9 @@ def train_update(agent: Agent, opts: dict, replay: Replay, args: Args, state: di
     if args.imag_starts and args.imag_starts < len(h0):
         pick = torch.randperm(len(h0), device=dev)[: args.imag_starts]
         h0, z0, start_w = h0[pick], z0[pick], start_w[pick]
-    hs, acts, rews, conts = imagine(agent.wm, agent.actor, agent.reward_dec, h0, z0, args.imag_horizon)
+    hs, acts, rews, conts = imagine(
+        agent.wm, agent.actor, agent.reward_dec, h0, z0, args.imag_horizon, agent.ac_input
+    )
     loss_actor, loss_critic, state["return_scale"], stats = actor_critic_loss(
         agent.actor, agent.critic, agent.slow_critic, agent.twohot, hs, acts, rews, conts,
         start_w, state["return_scale"], state["updates"], args,
@@ -862,7 +883,8 @@ def main(args: Args) -> dict:
         encoder.z_source = "attributes"
     model_name = "gw" if encoder.preset == "gw" else "clip"  # GW-Dreamer or CLIP-Dreamer
     task = "" if args.env == "simple_shapes" else f"_{args.task}"
-    control = "_attrz" if args.z_source == "attributes" else ""  # the control's runs stay apart
+    # The control's and the experiment's runs stay apart from the paper's.
+    control = ("_attrz" if args.z_source == "attributes" else "") + ("_hz" if args.ac_input == "hz" else "")
     run_name = f"{args.exp_name}_{model_name}{control}_{args.env}{task}_s{args.seed}"
     agent_path = Path(args.checkpoint) if args.checkpoint else ck_root / "agents" / f"{run_name}.pt"
     fingerprint = gw_fingerprint(encoder)
@@ -870,7 +892,7 @@ def main(args: Args) -> dict:
     random.seed(args.seed)
     np.random.seed(args.seed)
     torch.manual_seed(args.seed)
-    agent = Agent(args.env, encoder.z_dim, args.reward_loss).to(dev)
+    agent = Agent(args.env, encoder.z_dim, args.reward_loss, args.ac_input).to(dev)
     discrete = agent.discrete
     ref = ss_reference_returns() if args.env == "simple_shapes" else None
 
@@ -878,7 +900,7 @@ def main(args: Args) -> dict:
         return (ret - ref[0]) / (ref[1] - ref[0]) if ref else float("nan")
 
     if args.eval_only:
-        ck = load_agent_checkpoint(agent_path, args.env, fingerprint)
+        ck = load_agent_checkpoint(agent_path, args.env, fingerprint, args.ac_input)
         agent.load_state_dict(ck["agent"])
         rets, succ = run_episodes(agent, encoder, args, args.eval_episodes, args.drop, seed=args.seed + 10**6)
         sem = rets.std(ddof=1) / math.sqrt(len(rets)) if len(rets) > 1 else 0.0
@@ -910,7 +932,7 @@ def main(args: Args) -> dict:
         "next_video": args.video_every or args.total_steps,
     }
     if args.resume:
-        ck = load_agent_checkpoint(agent_path, args.env, fingerprint)
+        ck = load_agent_checkpoint(agent_path, args.env, fingerprint, args.ac_input)
         agent.load_state_dict(ck["agent"])
         for name, opt in opts.items():
             opt.load_state_dict(ck["opts"][name])
@@ -1011,8 +1033,8 @@ def main(args: Args) -> dict:
             else:
                 # The actor reads h_t, which has seen z_{t-1} and a_{t-1} but not z_t: the GRU takes z_t
                 # together with a_t (WM inputs [z_t, a_t]; actor input = the GRU state in the AC tables),
-                # so an episode's first action comes from h = 0, in dreams as here.
-                a = agent.actor.act(h)
+                # so an episode's first action comes from h = 0, in dreams as here (--ac-input hz adds z_t).
+                a = agent.actor.act(agent.features(h, z))
             h = agent.wm.step(h, z, a)
         obs, r, term, trunc, info = envs_.step(action_for_env(a, discrete))
         done = term | trunc

@@ -239,6 +239,29 @@ def test_imagination_shapes_and_stop_gradients():
     assert all(p.grad is None for p in [*agent.actor.parameters(), *agent.critic.parameters()])
 
 
+def test_actor_critic_input_hz_reads_z_in_dreams_and_when_acting(pretrained, monkeypatch):
+    torch.manual_seed(0)
+    agent = G.Agent("simple_shapes", 10, "twohot", ac_input="hz")
+    h0, z0 = torch.randn(6, 64), torch.rand(6, 10) * 2 - 1
+    feats, acts, _, _ = G.imagine(agent.wm, agent.actor, agent.reward_dec, h0, z0, 3, "hz")
+    assert feats.shape == (4, 6, 74) and torch.equal(feats[0], torch.cat([h0, z0], -1))
+    # later steps: the dreamt h_k beside the world model's own z_k = z_head(h_k)
+    torch.testing.assert_close(feats[1, :, 64:], agent.wm.z_head(feats[1, :, :64]))
+    # when acting the actor reads the real z_t: the CLI run records each input it was given
+    seen = []
+    act = G.Actor.act
+    monkeypatch.setattr(
+        G.Actor, "act", lambda self, x, mode=False: seen.append(x.shape[-1]) or act(self, x, mode)
+    )
+    args = ss_args(pretrained, ac_input="hz", total_steps=120, eval_every=10**6, video_every=0, imag_starts=8)
+    monkeypatch.chdir(pretrained[0])  # its TensorBoard folder goes under the test's runs/
+    G.main(args)
+    assert seen and set(seen) == {74}
+    path = pretrained[0] / "ck" / "simple_shapes" / "agents" / "gw_dreamer_gw_hz_simple_shapes_s1.pt"
+    with pytest.raises(ValueError, match="trained with --ac-input hz; pass --ac-input hz"):
+        G.main(ss_args(pretrained, eval_only=True, checkpoint=str(path)))
+
+
 def test_world_model_restarts_its_state_at_episode_starts():
     torch.manual_seed(0)
     agent = G.Agent("simple_shapes", 10, "twohot")
