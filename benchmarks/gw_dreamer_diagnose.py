@@ -47,6 +47,7 @@ class Args:
     steps: int = 60
     """steps per random-action episode"""
     seed: int = 0
+    """seed of the episodes, the dreams' action samples and the fitted reward head"""
 
 
 @torch.no_grad()
