@@ -569,23 +569,24 @@ def world_model_loss(wm, reward_dec, batch: dict[str, torch.Tensor], args: Args)
     return loss, {"loss_z": loss_z, "loss_r": loss_r, "loss_d": loss_d}, h_before, valid
 
 
+def ac_features(h: torch.Tensor, z: torch.Tensor, ac_input: str) -> torch.Tensor:
+    """The actor-critic's input for GRU state h and current z: h, or [h, z] with --ac-input hz."""
+    return torch.cat([h, z], -1) if ac_input == "hz" else h
+
+
 def imagine(wm, actor, reward_dec, h0: torch.Tensor, z0: torch.Tensor, horizon: int, ac_input: str = "h"):
     """Dream ``horizon`` steps from replayed states (h_t, z_t): the real z_t is given only at the first
     step, then the world model's own predictions (paper Figure 3 (2)). No gradient flows through the
     world model or the sampled actions. Returns the actor-critic's inputs (h_k, or [h_k, z_k] with
     ``ac_input="hz"``), actions, rewards and continuation probabilities."""
-
-    def feat(h, z):
-        return torch.cat([h, z], -1) if ac_input == "hz" else h
-
     with torch.no_grad():
-        hs, actions, rewards, conts = [feat(h0, z0)], [], [], []
+        hs, actions, rewards, conts = [ac_features(h0, z0, ac_input)], [], [], []
         h, z = h0, z0
         for _ in range(horizon):
             a = actor.act(hs[-1])
             h = wm.step(h, z, a)
             z, r_out, d_logit = wm.heads(h)
-            hs.append(feat(h, z))
+            hs.append(ac_features(h, z, ac_input))
             actions.append(a)
             rewards.append(reward_dec.value(r_out))
             conts.append(1 - torch.sigmoid(d_logit))
@@ -694,8 +695,7 @@ class Agent(nn.Module):
         self.reward_dec = RewardDecoder(reward_loss, self.twohot)
 
     def features(self, h: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        """The actor-critic's input for GRU state h and current z (--ac-input)."""
-        return torch.cat([h, z], -1) if self.ac_input == "hz" else h
+        return ac_features(h, z, self.ac_input)
 
 
 @torch.no_grad()

@@ -56,13 +56,13 @@ def replay_errors(agent: G.Agent, replay: G.Replay, batches: int = 8) -> tuple[n
     errs, z_errs = [], []
     for _ in range(batches):
         b = {k: torch.as_tensor(v) for k, v in replay.sample(64, 32).items()}
-        h = torch.zeros(64, agent.wm.hidden)
-        for t in range(b["z"].shape[1] - 1):
-            h = agent.wm.step(h * (1 - b["first"][:, t, None]), b["z"][:, t], b["a"][:, t])
-            z_hat, r_out, _ = agent.wm.heads(h)
-            keep = b["last"][:, t] == 0
-            errs.append((agent.reward_dec.value(r_out) - b["r"][:, t])[keep].abs().numpy())
-            z_errs.append(((z_hat - b["z"][:, t + 1]) ** 2).sum(-1)[keep].numpy())
+        h_before = G.world_model_loss(agent.wm, agent.reward_dec, b, G.Args())[2]
+        z, a = b["z"][:, :-1], b["a"][:, :-1]
+        h_next = agent.wm.step(h_before.flatten(0, 1), z.flatten(0, 1), a.flatten(0, 1))  # GRUCell: 2-D
+        z_hat, r_out, _ = agent.wm.heads(h_next.view(*h_before.shape))
+        keep = b["last"][:, :-1] == 0
+        errs.append((agent.reward_dec.value(r_out) - b["r"][:, :-1])[keep].abs().numpy())
+        z_errs.append(((z_hat - b["z"][:, 1:]) ** 2).sum(-1)[keep].numpy())
     return np.concatenate(errs), np.concatenate(z_errs)
 
 
@@ -191,7 +191,10 @@ if __name__ == "__main__":
     torch.manual_seed(a.seed)
     print(f"{a.checkpoint}: {ck['state']['env_steps']:,} env steps, {ck['state']['updates']:,} updates")
 
-    acts = replay.a[0, : replay.count[0]].argmax(-1)[replay.last[0, : replay.count[0]] == 0]
+    n = int(min(replay.count[0], replay.cap))
+    oldest = int(replay.pos[0]) if replay.count[0] > replay.cap else 0  # a full buffer has wrapped
+    a_t, last = np.roll(replay.a[0, :n], -oldest, 0), np.roll(replay.last[0, :n], -oldest)
+    acts = a_t.argmax(-1)[last == 0]  # one entry per env step of the stored window
     print("1. actions taken (share; 0 no-op, 1 x+1, 2 y+1, 3 x-1, 4 y-1, 5/6 rotate):")
     for lo, hi in zip(a.windows[:-1], a.windows[1:], strict=True):
         part = acts[lo:hi]
