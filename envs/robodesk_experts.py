@@ -30,10 +30,9 @@ DESK_Z = 0.76  # height of the desk top (the upright block's base at reset)
 
 
 class WaypointExpert:
-    """Follows a list of way-points (position, gripper, tolerance[, dwell]); the list is recomputed from
-    the simulator state at every step, so targets track moving objects. A way-point is passed once the
-    end effector is within its tolerance and, if it has a dwell, after that many steps at it (time for the
-    fingers to close). The last way-point is held."""
+    """Follows a list of way-points (position, gripper, tolerance); the list is recomputed from the
+    simulator state at every step, so targets track moving objects. A way-point is passed once the end
+    effector is within its tolerance. The last way-point is held."""
 
     def __init__(self, env: gym.Env, plan: Callable, noise: float = 0.0, seed: int | None = None):
         robodesk = env.unwrapped
@@ -41,24 +40,19 @@ class WaypointExpert:
         self.wrist_hold = -(lo + hi) / (hi - lo)  # the action whose wrist step is 0
         self.plan, self.noise = plan, float(noise)
         self.rng = np.random.default_rng(seed)
-        self.stage = self.steps_at_stage = 0
+        self.stage = 0
 
     def reset(self) -> None:
-        self.stage = self.steps_at_stage = 0
+        self.stage = 0
 
     def act(self, env: gym.Env) -> np.ndarray:
         robodesk = env.unwrapped
         ee = robodesk.data.site_xpos[robodesk._ee_site]
-        waypoints = [(*w, 0) if len(w) == 3 else w for w in self.plan(robodesk)]
-        target, grip, tol, dwell = waypoints[min(self.stage, len(waypoints) - 1)]
-        while (
-            self.stage < len(waypoints) - 1
-            and np.linalg.norm(target - ee) < tol
-            and self.steps_at_stage >= dwell
-        ):
-            self.stage, self.steps_at_stage = self.stage + 1, 0
-            target, grip, tol, dwell = waypoints[self.stage]
-        self.steps_at_stage += 1
+        waypoints = self.plan(robodesk)
+        target, grip, tol = waypoints[min(self.stage, len(waypoints) - 1)]
+        while self.stage < len(waypoints) - 1 and np.linalg.norm(target - ee) < tol:
+            self.stage += 1
+            target, grip, tol = waypoints[self.stage]
         action = np.zeros(5)
         action[:3] = np.clip((target - ee) / STEP, -1.0, 1.0)
         action[3], action[4] = self.wrist_hold, grip
