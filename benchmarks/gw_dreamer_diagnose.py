@@ -29,7 +29,7 @@ import tyro
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import gw_dreamer as G  # noqa: E402
-from envs.simple_shapes import ACTION_DELTAS, N_ACTIONS, reward_and_goal  # noqa: E402
+from envs.simple_shapes import ACTION_DELTAS, N_ACTIONS, SimpleShapesVectorEnv, reward_and_goal  # noqa: E402
 
 
 @dataclass
@@ -109,8 +109,6 @@ def reward_from_true_z(agent: G.Agent, replay: G.Replay, seed: int, steps: int =
 @torch.no_grad()
 def z_change_per_action(encoder, n: int, seed: int) -> np.ndarray:
     """||z(s') - z(s)||^2 for each action 1-6 from n reset states s (rows), s' = s after the action."""
-    from envs.simple_shapes import SimpleShapesVectorEnv
-
     env, out = SimpleShapesVectorEnv(1), []
     for i in range(n):
         obs, _ = env.reset(seed=seed + i)
