@@ -540,6 +540,15 @@ class Replay:
             setattr(self, k, s[k])
         self.rng.bit_generator.state = s["rng"]
 
+    def close_episodes(self) -> None:
+        """Mark each stream's newest entry as an episode's last. Called on resume: the saved run stopped
+        mid-episode, and the next entry will start a new episode, so the world model must not learn a
+        transition from the old episode's last stored state into the new one's first (the newest entry's
+        own transition is dropped with it: its next observation was never stored)."""
+        for i in range(self.n):
+            if self.count[i]:
+                self.last[i, (self.pos[i] - 1) % self.cap] = 1.0
+
 
 # --------------------------------------------------------------------------------------------------
 # Losses
@@ -937,6 +946,7 @@ def main(args: Args) -> dict:
         for name, opt in opts.items():
             opt.load_state_dict(ck["opts"][name])
         replay.load_state_dict(ck["replay"])
+        replay.close_episodes()  # the saved run stopped mid-episode
         state.update(ck["state"])
         torch.set_rng_state(ck["torch_rng"])
         np.random.set_state(ck["np_rng"])

@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 os.environ.setdefault("MUJOCO_GL", "egl")  # before anything imports mujoco
@@ -37,6 +38,17 @@ def tiny_agent_args(module, pretrained, **kw):
     ``pretrained`` checkpoints."""
     base = dict(checkpoint_dir=str(pretrained[0] / "ck"), learning_starts=50, batch_size=4, batch_length=8)
     return module.Args(**(base | kw)).resolve()
+
+
+def assert_episodes_separated(replay: dict) -> None:
+    """In a saved GW-Dreamer replay (streams not yet wrapped), every episode start but a stream's first
+    entry follows an entry marked last, so no world-model transition crosses from one episode into the
+    next, also where a resumed run started new episodes after a save made mid-episode."""
+    for i in range(len(replay["count"])):
+        n = int(replay["count"][i])
+        starts = np.flatnonzero(replay["first"][i, 1:n]) + 1
+        assert len(starts) > 0
+        assert np.all(replay["last"][i, starts - 1] == 1), starts[replay["last"][i, starts - 1] != 1]
 
 
 def run_pretrain(tmp_path: Path, *extra: str) -> str:

@@ -8,7 +8,7 @@ import pytest
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
-from conftest import run_script, tiny_agent_args
+from conftest import assert_episodes_separated, run_script, tiny_agent_args
 
 import gw_dreamer as G
 
@@ -25,11 +25,12 @@ def ss_args(pretrained, **kw) -> G.Args:
 
 @pytest.fixture(scope="module")
 def ss_run(pretrained):
-    """300 steps of GW-Dreamer on Simple Shapes through the CLI, saving at 150 and at the end."""
+    """250 steps of GW-Dreamer on Simple Shapes through the CLI, saving at 150 and at the end
+    (mid-episode)."""
     tmp = pretrained[0]
     ck = ["--checkpoint-dir", str(tmp / "ck")]
     log = run_script(
-        "gw_dreamer.py", tmp, "--env", "simple_shapes", *ck, *TINY, "--total-steps", "300",
+        "gw_dreamer.py", tmp, "--env", "simple_shapes", *ck, *TINY, "--total-steps", "250",
         "--eval-every", "150", "--save-every", "150",
     )  # fmt: skip
     return tmp, log, tmp / "ck" / "simple_shapes" / "agents" / "gw_dreamer_gw_simple_shapes_s1.pt"
@@ -39,8 +40,8 @@ def test_simple_shapes_cli_run_trains_saves_and_logs(ss_run):
     tmp, log, agent = ss_run
     assert "GW-Dreamer on simple_shapes" in log and "done:" in log
     ck = torch.load(agent, weights_only=False)
-    assert ck["kind"] == "gw_dreamer" and ck["state"]["env_steps"] == 300
-    assert ck["state"]["updates"] == (300 - 100) // 10  # one update per train_ratio env steps
+    assert ck["kind"] == "gw_dreamer" and ck["state"]["env_steps"] == 250
+    assert ck["state"]["updates"] == (250 - 100) // 10  # one update per train_ratio env steps
     assert ck["state"]["flops"] == ck["state"]["updates"] * ck["state"]["flops_per_update"] > 0
     events = list((tmp / "runs" / "gw_dreamer_gw_simple_shapes_s1").glob("events.*"))
     assert events
@@ -59,9 +60,10 @@ def test_resume_continues_the_saved_run(ss_run):
         "gw_dreamer.py", tmp, "--env", "simple_shapes", "--checkpoint-dir", str(tmp / "ck"), *TINY,
         "--total-steps", "400", "--resume", "--eval-every", "1000", "--save-every", "1000",
     )  # fmt: skip
-    assert "resuming" in log and "at env step 300" in log
+    assert "resuming" in log and "at env step 250" in log
     ck = torch.load(agent, weights_only=False)
     assert ck["state"]["env_steps"] == 400 and ck["state"]["updates"] == (400 - 100) // 10
+    assert_episodes_separated(ck["replay"])  # the episode cut by the save at 250 is closed
 
 
 def test_eval_only_with_each_drop(ss_run, pretrained):

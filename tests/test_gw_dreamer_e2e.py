@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import run_script, tiny_agent_args
+from conftest import assert_episodes_separated, run_script, tiny_agent_args
 
 import gw_dreamer_e2e as E
 import pretrain_vae_gw as P
@@ -26,11 +26,12 @@ def ss_args(pretrained, **kw) -> E.Args:
 
 @pytest.fixture(scope="module")
 def ss_run(pretrained):
-    """300 steps of end-to-end GW-Dreamer on Simple Shapes through the CLI, saving at 150 and at the end."""
+    """250 steps of end-to-end GW-Dreamer on Simple Shapes through the CLI, saving at 150 and at the end
+    (mid-episode)."""
     tmp = pretrained[0]
     log = run_script(
         "gw_dreamer_e2e.py", tmp, "--env", "simple_shapes", "--checkpoint-dir", str(tmp / "ck"), *TINY,
-        "--total-steps", "300", "--eval-every", "150", "--save-every", "150",
+        "--total-steps", "250", "--eval-every", "150", "--save-every", "150",
     )  # fmt: skip
     return tmp, log, tmp / "ck" / "simple_shapes" / "agents" / AGENT
 
@@ -39,8 +40,8 @@ def test_simple_shapes_cli_run_trains_the_gw_saves_and_logs(ss_run):
     tmp, log, agent = ss_run
     assert "GW-Dreamer end to end on simple_shapes: GW 55,336" in log and "done:" in log  # table: 55K
     ck = torch.load(agent, weights_only=False)
-    assert ck["kind"] == "gw_dreamer_e2e" and ck["state"]["env_steps"] == 300
-    assert ck["state"]["updates"] == (300 - 100) // 10
+    assert ck["kind"] == "gw_dreamer_e2e" and ck["state"]["env_steps"] == 250
+    assert ck["state"]["updates"] == (250 - 100) // 10
     assert ck["state"]["gw_updates"] == 2 * ck["state"]["updates"]  # two GW updates per global step
     assert ck["state"]["flops"] == ck["state"]["updates"] * ck["state"]["flops_per_update"] > 0
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
@@ -76,9 +77,10 @@ def test_resume_continues_the_saved_run(ss_run):
         "gw_dreamer_e2e.py", tmp, "--env", "simple_shapes", "--checkpoint-dir", str(tmp / "ck"), *TINY,
         "--total-steps", "400", "--resume", "--eval-every", "1000", "--save-every", "1000",
     )  # fmt: skip
-    assert "resuming" in log and "at env step 300" in log
+    assert "resuming" in log and "at env step 250" in log
     ck = torch.load(agent, weights_only=False)
     assert ck["state"]["env_steps"] == 400 and ck["state"]["gw_updates"] == 2 * (400 - 100) // 10
+    assert_episodes_separated(ck["replay"])  # the episode cut by the save at 250 is closed
 
 
 def test_eval_only_with_each_drop_and_the_vae_check(ss_run, pretrained, tmp_path):
