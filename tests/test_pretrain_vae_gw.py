@@ -215,7 +215,7 @@ def test_defaults_follow_the_tables_and_the_cpu_preset_is_small():
     )  # fmt: skip
     cpu = P.Args(env="simple_shapes", cpu_preset=True).resolve()
     assert (cpu.n_samples, cpu.vae_width, cpu.vae_steps, cpu.vae_batch_size, cpu.gw_steps) == (
-        60_000, 64, 5_000, 128, 60_000,
+        60_000, 64, 5_000, 128, 20_000,
     )  # fmt: skip
     assert (cpu.beta_attr, cpu.attr_updates_per_step) == (0.005, 4)
     # One-cycle schedule: starts and ends at the start/end rate, peaks at the max rate.
