@@ -21,6 +21,8 @@ import copy
 import math
 import os
 import random
+import signal
+import threading
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -834,6 +836,28 @@ def atomic_save(obj: dict, path: Path) -> None:
     os.replace(tmp, path)
 
 
+class StopRequest:
+    """Ctrl-C (SIGINT) or SIGTERM during training asks the loop to finish its env step and the updates
+    owed, save the agent and exit, so an interrupted run loses nothing and ``--resume`` continues it (a
+    save made inside an update would pair half-stepped optimisers). A second signal stops at once."""
+
+    def __init__(self, tag: str):
+        self.tag, self.requested, self.previous = tag, False, {}
+        if threading.current_thread() is threading.main_thread():  # signal handlers live there only
+            self.previous = {s: signal.signal(s, self.handle) for s in (signal.SIGINT, signal.SIGTERM)}
+
+    def handle(self, signum, frame) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        name = signal.Signals(signum).name
+        print(f"[{self.tag}] {name}: saving after this step (send it again to stop at once)", flush=True)
+
+    def restore(self) -> None:
+        for s, handler in self.previous.items():
+            signal.signal(s, handler)
+
+
 def vae_fingerprint(vaes: FrozenVAEs) -> float:
     """A number that changes with the frozen weights: a resumed or evaluated agent must use the VAEs it
     was trained on (its GW is part of the agent checkpoint)."""
@@ -1098,6 +1122,7 @@ def main(args: Args) -> dict:
     ep_ret, ep_succ = np.zeros(args.num_envs), np.zeros(args.num_envs)
     rng = np.random.default_rng(args.seed + state["env_steps"])
     t0, steps0, last_log = time.time(), state["env_steps"], {}
+    stop = StopRequest("gw_dreamer_e2e")
     while state["env_steps"] < args.total_steps:
         if args.stop_at_criterion and state["criterion_step"] is not None:
             break
@@ -1185,7 +1210,19 @@ def main(args: Args) -> dict:
         if step >= state["next_save"]:
             state["next_save"] += args.save_every
             save(agent_path)
+        if stop.requested:
+            save(agent_path)
+            envs_.close()
+            writer.close()
+            stop.restore()
+            print(
+                f"[gw_dreamer_e2e] interrupted at env step {step:,}: saved {agent_path}; "
+                "the same command with --resume continues the run",
+                flush=True,
+            )
+            raise SystemExit(130)  # the shell's code for a run ended by Ctrl-C
 
+    stop.restore()
     envs_.close()
     rets, succ = run_episodes(agent, vaes, args, args.eval_episodes, "none", seed=10**6 + 1)
     strip = dream_filmstrip(agent, vaes, args, 16, seed=10**6)

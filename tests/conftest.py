@@ -2,6 +2,8 @@
 VAE/GW checkpoints that every agent test starts from (made once per session through the real CLI)."""
 
 import os
+import re
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -27,6 +29,26 @@ def run_script(script: str, cwd: Path, *args: str, timeout: int = 300) -> str:
     )
     assert out.returncode == 0, out.stdout + out.stderr
     return out.stdout
+
+
+def interrupt_run(script: str, cwd: Path, *args: str) -> tuple[str, int, int]:
+    """Run a Dreamer-family script through its CLI, press Ctrl-C (SIGINT) once it prints its first
+    training progress line, and return (its output, exit code, the env step it reports saving at)."""
+    proc = subprocess.Popen(
+        [sys.executable, str(ROOT / script), *args], cwd=cwd, stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    lines = []
+    for line in proc.stdout:
+        lines.append(line)
+        if "] step " in line and " updates " in line:  # training is under way
+            proc.send_signal(signal.SIGINT)
+            break
+    rest, _ = proc.communicate(timeout=300)
+    log = "".join(lines) + rest
+    found = re.search(r"interrupted at env step ([\d,]+)", log)
+    assert found, log
+    return log, proc.returncode, int(found.group(1).replace(",", ""))
 
 
 # Small dreamer_baseline.py widths for tests (its --size presets are 2M parameters and up).

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import DREAMER_SMALL, run_pretrain, run_script, tiny_agent_args
+from conftest import DREAMER_SMALL, interrupt_run, run_pretrain, run_script, tiny_agent_args
 
 import dreamer_baseline as D
 import pretrain_vae_gw as P
@@ -292,3 +292,17 @@ def test_bad_input_is_explained(tmp_path, pretrained):
     with pytest.raises(ValueError, match="multiple of the GRU's 8 blocks"):
         D.Args(deter=100).resolve()
     assert D.updates_due(1_000 + 65 * 16, D.Args().resolve()) == 32  # 16 x 65 replayed steps, ratio 32
+
+
+def test_ctrl_c_saves_the_run_where_it_stopped(tmp_path):
+    log, code, step = interrupt_run(
+        "dreamer_baseline.py", tmp_path, "--env", "simple_shapes", "--checkpoint-dir", str(tmp_path / "ck"),
+        *TINY, "--log-every", "50", "--total-steps", "3000", "--save-every", "100000",
+        "--eval-every", "100000",
+    )  # fmt: skip
+    assert code == 130 and "--resume continues the run" in log, log
+    ck = torch.load(
+        agent_path(tmp_path / "ck" / "simple_shapes", "dreamer_raw_2m_simple_shapes_s1"), weights_only=False
+    )
+    assert 100 < step < 3000 and ck["state"]["env_steps"] == step
+    assert ck["state"]["updates"] == (step - 100) * 16 // (4 * 8)

@@ -8,7 +8,7 @@ import pytest
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
-from conftest import assert_episodes_separated, run_script, tiny_agent_args
+from conftest import assert_episodes_separated, interrupt_run, run_script, tiny_agent_args
 
 import gw_dreamer as G
 
@@ -376,3 +376,20 @@ def test_attribute_control_feeds_the_true_attributes(pretrained, pretrained_robo
     rd = str(pretrained_robodesk[0] / "ck")
     with pytest.raises(ValueError, match="Simple Shapes control"):
         G.main(G.Args(env="robodesk", checkpoint_dir=rd, z_source="attributes"))
+
+
+def test_ctrl_c_saves_the_run_where_it_stopped(pretrained):
+    """SIGINT mid-run: the loop finishes the step and its updates, saves (no periodic save is due) and
+    exits 130, so nothing since the last periodic save is lost."""
+    tmp = pretrained[0]
+    log, code, step = interrupt_run(
+        "gw_dreamer.py", tmp, "--env", "simple_shapes", "--checkpoint-dir", str(tmp / "ck"), *TINY,
+        "--log-every", "50", "--total-steps", "3000", "--save-every", "100000", "--eval-every", "100000",
+        "--exp-name", "interrupted",
+    )  # fmt: skip
+    assert code == 130 and "--resume continues the run" in log, log
+    ck = torch.load(
+        tmp / "ck" / "simple_shapes" / "agents" / "interrupted_gw_simple_shapes_s1.pt", weights_only=False
+    )
+    assert 100 < step < 3000 and ck["state"]["env_steps"] == step
+    assert ck["state"]["updates"] == (step - 100) // 10  # the updates owed by that step were made

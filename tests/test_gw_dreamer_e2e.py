@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import assert_episodes_separated, run_script, tiny_agent_args
+from conftest import assert_episodes_separated, interrupt_run, run_script, tiny_agent_args
 
 import gw_dreamer_e2e as E
 import pretrain_vae_gw as P
@@ -247,3 +247,17 @@ def test_missing_checkpoints_are_explained(pretrained, pretrained_robodesk, tmp_
         E.main(ss_args(pretrained, eval_only=True, checkpoint=str(tmp_path / "none.pt")))
     with pytest.raises(ValueError, match="unknown RoboDesk task 'fly'"):
         E.main(E.Args(env="robodesk", task="fly", checkpoint_dir=str(pretrained_robodesk[0] / "ck")))
+
+
+def test_ctrl_c_saves_the_run_where_it_stopped(pretrained):
+    tmp = pretrained[0]
+    log, code, step = interrupt_run(
+        "gw_dreamer_e2e.py", tmp, "--env", "simple_shapes", "--checkpoint-dir", str(tmp / "ck"), *TINY,
+        "--log-every", "50", "--total-steps", "3000", "--save-every", "100000", "--eval-every", "100000",
+        "--exp-name", "interrupted_e2e",
+    )  # fmt: skip
+    assert code == 130 and "--resume continues the run" in log, log
+    path = tmp / "ck" / "simple_shapes" / "agents" / "interrupted_e2e_gw_simple_shapes_s1.pt"
+    ck = torch.load(path, weights_only=False)
+    assert 100 < step < 3000 and ck["state"]["env_steps"] == step
+    assert ck["state"]["updates"] == (step - 100) // 10
