@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 os.environ.setdefault("MUJOCO_GL", "egl")  # before anything imports mujoco
 ROOT = Path(__file__).resolve().parents[1]
@@ -31,11 +32,13 @@ def run_script(script: str, cwd: Path, *args: str, timeout: int = 300) -> str:
     return out.stdout
 
 
-def interrupt_run(script: str, cwd: Path, *args: str) -> tuple[str, int, int]:
-    """Run a Dreamer-family script through its CLI, press Ctrl-C (SIGINT) once it prints its first
-    training progress line, and return (its output, exit code, the env step it reports saving at)."""
+def interrupt_run(script: str, cwd: Path, agent: Path, *args: str) -> tuple[dict, int]:
+    """Run a Dreamer-family script through its CLI for up to 3,000 env steps with no periodic save or
+    evaluation due, press Ctrl-C (SIGINT) once it prints its first training progress line, check that
+    it exited 130 naming --resume, and return (the state saved in ``agent``, the step it reports)."""
+    never = ["--log-every", "50", "--total-steps", "3000", "--save-every", "100000", "--eval-every", "100000"]
     proc = subprocess.Popen(
-        [sys.executable, str(ROOT / script), *args], cwd=cwd, stdout=subprocess.PIPE,
+        [sys.executable, str(ROOT / script), *args, *never], cwd=cwd, stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT, text=True,
     )  # fmt: skip
     lines = []
@@ -47,8 +50,11 @@ def interrupt_run(script: str, cwd: Path, *args: str) -> tuple[str, int, int]:
     rest, _ = proc.communicate(timeout=300)
     log = "".join(lines) + rest
     found = re.search(r"interrupted at env step ([\d,]+)", log)
-    assert found, log
-    return log, proc.returncode, int(found.group(1).replace(",", ""))
+    assert found and proc.returncode == 130 and "--resume continues the run" in log, log
+    step = int(found.group(1).replace(",", ""))
+    state = torch.load(agent, weights_only=False)["state"]
+    assert 100 < step < 3000 and state["env_steps"] == step
+    return state, step
 
 
 # Small dreamer_baseline.py widths for tests (its --size presets are 2M parameters and up).

@@ -295,14 +295,9 @@ def test_bad_input_is_explained(tmp_path, pretrained):
 
 
 def test_ctrl_c_saves_the_run_where_it_stopped(tmp_path):
-    log, code, step = interrupt_run(
-        "dreamer_baseline.py", tmp_path, "--env", "simple_shapes", "--checkpoint-dir", str(tmp_path / "ck"),
-        *TINY, "--log-every", "50", "--total-steps", "3000", "--save-every", "100000",
-        "--eval-every", "100000",
+    state, step = interrupt_run(
+        "dreamer_baseline.py", tmp_path,
+        agent_path(tmp_path / "ck" / "simple_shapes", "dreamer_raw_2m_simple_shapes_s1"),
+        "--env", "simple_shapes", "--checkpoint-dir", str(tmp_path / "ck"), *TINY,
     )  # fmt: skip
-    assert code == 130 and "--resume continues the run" in log, log
-    ck = torch.load(
-        agent_path(tmp_path / "ck" / "simple_shapes", "dreamer_raw_2m_simple_shapes_s1"), weights_only=False
-    )
-    assert 100 < step < 3000 and ck["state"]["env_steps"] == step
-    assert ck["state"]["updates"] == (step - 100) * 16 // (4 * 8)
+    assert state["updates"] == (step - 100) * 16 // (4 * 8)

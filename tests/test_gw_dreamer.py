@@ -382,14 +382,8 @@ def test_ctrl_c_saves_the_run_where_it_stopped(pretrained):
     """SIGINT mid-run: the loop finishes the step and its updates, saves (no periodic save is due) and
     exits 130, so nothing since the last periodic save is lost."""
     tmp = pretrained[0]
-    log, code, step = interrupt_run(
-        "gw_dreamer.py", tmp, "--env", "simple_shapes", "--checkpoint-dir", str(tmp / "ck"), *TINY,
-        "--log-every", "50", "--total-steps", "3000", "--save-every", "100000", "--eval-every", "100000",
-        "--exp-name", "interrupted",
+    state, step = interrupt_run(
+        "gw_dreamer.py", tmp, tmp / "ck" / "simple_shapes" / "agents" / "interrupted_gw_simple_shapes_s1.pt",
+        "--env", "simple_shapes", "--checkpoint-dir", str(tmp / "ck"), *TINY, "--exp-name", "interrupted",
     )  # fmt: skip
-    assert code == 130 and "--resume continues the run" in log, log
-    ck = torch.load(
-        tmp / "ck" / "simple_shapes" / "agents" / "interrupted_gw_simple_shapes_s1.pt", weights_only=False
-    )
-    assert 100 < step < 3000 and ck["state"]["env_steps"] == step
-    assert ck["state"]["updates"] == (step - 100) // 10  # the updates owed by that step were made
+    assert state["updates"] == (step - 100) // 10  # the updates owed by that step were made
