@@ -6,7 +6,6 @@ paper's CLIP-Dreamer.
 
     python pretrain_vae_gw.py --env simple_shapes --cpu-preset    # frozen VAEs + GW (needed first)
     python gw_dreamer.py --env simple_shapes                       # paper settings
-    python gw_dreamer.py --env simple_shapes --cpu-preset          # the settings measured on a 2-core CPU
     python gw_dreamer.py --env robodesk --task push_green
     python gw_dreamer.py --env simple_shapes --eval-only --checkpoint PATH --drop vision   # ablation
 
@@ -56,9 +55,6 @@ class Args:
     """torch device"""
     torch_threads: int = 0
     """torch CPU threads (0: torch's default)"""
-    cpu_preset: bool = False
-    """Simple Shapes settings measured on a 2-core CPU (see CPU_PRESET and the README); flags left at
-    their paper default take the preset's value"""
 
     # frozen representations (pretrain_vae_gw.py)
     checkpoint_dir: str = "checkpoints"
@@ -71,11 +67,12 @@ class Args:
 
     # training (appendix Table "GW-Dreamer training")
     total_steps: int | None = None
-    """environment steps (default 100,000 Simple Shapes, 1,000,000 RoboDesk)"""
+    """environment steps, in the paper's unit: agent steps on Simple Shapes, simulator frames on RoboDesk
+    (4 per agent step: its action repeat); default 100,000 Simple Shapes, 1,000,000 RoboDesk"""
     num_envs: int = 1
     """environments stepped together"""
     learning_starts: int = 1_000
-    """random-policy steps that fill the replay buffer before the first update"""
+    """random-policy environment steps that fill the replay buffer before the first update"""
     buffer_size: int = 100_000
     """replay capacity in transitions"""
     batch_size: int | None = None
@@ -83,13 +80,15 @@ class Args:
     batch_length: int | None = None
     """transitions per replayed sequence (default 32 Simple Shapes, 128 RoboDesk)"""
     train_ratio: float | None = None
-    """the table's train ratio (default 4 Simple Shapes, 2 RoboDesk), read as environment steps per
-    training update (see `updates_due`)"""
+    """the table's train ratio (default 4 Simple Shapes, 2 RoboDesk), read as agent steps per training
+    update (see `updates_due`)"""
     imag_horizon: int = 20
     """imagined steps per rollout"""
-    imag_starts: int | None = None
-    """imagined rollouts per update, started from this many of the batch's replayed states taken at
-    random (default: all batch_size x batch_length of them)"""
+    imag_from: Literal["last", "all"] = "last"
+    """where dreams start. last: one dream per replayed sequence, from its newest state (the real z_t
+    there and the h_t of a world model that has read the whole sequence), batch_size dreams per update:
+    the paper's "first observation" reading, which its FLOPs table supports (docs/paper_readings.md).
+    all: from every replayed state, batch_size x batch_length dreams (DreamerV3's)"""
     wm_lr: float | None = None
     """world-model Adam learning rate (default 1e-3 Simple Shapes, 3e-4 RoboDesk)"""
     ac_lr: float = 3e-4
@@ -107,8 +106,10 @@ class Args:
     """discount (DreamerV3)"""
     lam: float = 0.95
     """lambda of the lambda-returns"""
-    entropy_coef: float = 3e-4
-    """actor entropy regulariser (DreamerV3)"""
+    entropy_coef: float = 3e-3
+    """actor entropy regulariser. The paper gives none; DreamerV3's 3e-4 goes with its actor rate of 3e-5,
+    and the paper's rate is 10x that (3e-4), so the bonus keeps DreamerV3's ratio to it: with 3e-4 the
+    policy collapses onto one or two actions in 2 of 4 Simple Shapes runs (docs/experiments.md)"""
     slow_critic_decay: float = 0.98
     """EMA decay of the slow critic that regularises the critic (DreamerV3)"""
     return_norm_decay: float = 0.99
@@ -121,8 +122,8 @@ class Args:
     """RoboDesk episode length in physics-control repeats (paper: 2000, i.e. 500 agent steps)"""
 
     # evaluation, logging, checkpoints
-    eval_every: int = 5_000
-    """environment steps between evaluations"""
+    eval_every: int | None = None
+    """environment steps between evaluations (default 5,000 Simple Shapes, 50,000 RoboDesk)"""
     eval_episodes: int = 10
     """episodes per evaluation (and for --eval-only)"""
     criterion: float = 0.75
@@ -150,40 +151,30 @@ class Args:
     """what the actor and critic read. h: the GRU state h_t, as the tables' input sizes (64, 1024) and the
     text say. hz: [h_t, z_t], the real z_t when acting and the world model's z in dreams (DreamerV3's and
     World Models' controller input); an experiment, not the paper's reading (README, GW-Dreamer status)"""
+    heads_read_sg_z: bool = False
+    """an experiment: the reward and done heads read sg(z_{t+1}), so their losses do not train the z head"""
+    zero_init: bool = False
+    """an experiment: the reward head's and the critic's output layers start at zero (DreamerV3)"""
     z_source: Literal["gw", "attributes"] = "gw"
     """gw: the paper's z_t. attributes: a control, not a paper variant (Simple Shapes only): z_t is the
     true attribute vector (its first 10 entries, clipped to [-1, 1]) instead of the GW's, which tests the
     world model and actor-critic alone (README, GW-Dreamer status)"""
 
     def resolve(self) -> Args:
-        """The CPU preset (if asked) for every flag left at its default, then the tables' defaults."""
+        """The tables' defaults for the flags that differ between the environments."""
         ss = self.env == "simple_shapes"
-        if self.cpu_preset:
-            if not ss:
-                raise ValueError("--cpu-preset is for Simple Shapes; RoboDesk at paper scale needs a GPU")
-            plain = Args(env=self.env)
-            for name, value in CPU_PRESET.items():
-                if getattr(self, name) == getattr(plain, name):  # flags given explicitly win
-                    setattr(self, name, value)
         for name, ss_value, rd_value in [
             ("total_steps", 100_000, 1_000_000),
             ("batch_size", 64, 32),
             ("batch_length", 32, 128),
             ("train_ratio", 4.0, 2.0),
             ("wm_lr", 1e-3, 3e-4),
+            ("eval_every", 5_000, 50_000),
         ]:
             if getattr(self, name) is None:
                 setattr(self, name, ss_value if ss else rd_value)
         return self
 
-
-# Settings measured on this 2-core CPU (README): fewer imagination starts per update and fewer updates
-# than the paper's GPU run; every network keeps the paper's size.
-CPU_PRESET = {
-    "total_steps": 30_000,
-    "imag_starts": 256,
-    "train_ratio": 8.0,
-}
 
 # Network sizes of the appendix tables ("GRU architecture", "World Model heads", "Actor-Critic").
 SIZES = {
@@ -192,6 +183,10 @@ SIZES = {
     # reads h_t (text), so its input is 1024 and its 4 hidden layers are 512 wide as listed.
     "robodesk": {"gru_in": 1024, "gru_hidden": 1024, "z_head": (512, 512), "ac_layers": 4, "actions": 5},
 }
+# Simulator frames per agent step. The paper counts RoboDesk "environment steps" in frames ("2,000
+# environment steps but with an action repetition of 4 steps, leading to 500 chosen actions"), so step
+# counts (--total-steps, criteria, logs) are frames there; Simple Shapes has no action repeat.
+ACTION_REPEAT = {"simple_shapes": 1, "robodesk": 4}
 ENV_SPECS = {  # must agree with pretrain_vae_gw.py (checked against the checkpoints)
     "simple_shapes": {"image": 32, "attr": 11, "latent": 10, "z": 10, "gw_hidden": 64},
     "robodesk": {"image": 64, "attr": 76, "latent": 40, "z": 76, "gw_hidden": 512},
@@ -412,17 +407,20 @@ class WorldModel(nn.Module):
             layers += [nn.Linear(cin, width), nn.ReLU()]
             cin = width
         self.z_head = nn.Sequential(*layers, nn.Linear(cin, z_dim), nn.Tanh())
-        # The tables list three hidden layers of 256; their parameter counts would fit two.
-        self.reward_head = mlp(s["gru_hidden"] + z_dim, 256, reward_out, 3)
-        self.done_head = mlp(s["gru_hidden"] + z_dim, 256, 1, 3)
+        # Two hidden layers of 256: the tables draw three, but all four of their parameter counts (reward
+        # 150,000 / 413,000, done 85,000 / 348,000) are those of two (docs/paper_readings.md).
+        self.reward_head = mlp(s["gru_hidden"] + z_dim, 256, reward_out, 2)
+        self.done_head = mlp(s["gru_hidden"] + z_dim, 256, 1, 2)
         self.hidden = s["gru_hidden"]
 
     def step(self, h: torch.Tensor, z: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
         return self.gru(self.inp(torch.cat([z, a], -1)), h)
 
+    detach_z = False  # --heads-read-sg-z: the reward and done heads read sg(z_{t+1}) (an experiment)
+
     def heads(self, h_next: torch.Tensor):
         z_next = self.z_head(h_next)
-        feat = torch.cat([h_next, z_next], -1)
+        feat = torch.cat([h_next, z_next.detach() if self.detach_z else z_next], -1)
         return z_next, self.reward_head(feat), self.done_head(feat).squeeze(-1)
 
 
@@ -557,19 +555,21 @@ class Replay:
 # --------------------------------------------------------------------------------------------------
 def world_model_loss(wm, reward_dec, batch: dict[str, torch.Tensor], args: Args):
     """L_WM = coef_z MSE(z_{t+1}) + coef_r L_r + coef_d BCE(d_{t+1}) on replayed sequences (Algorithm 1,
-    lines 8-10). Returns the loss, its terms and the GRU states h_t before each entry (imagination
-    starts). MSE is summed over the z dimensions, averaged over transitions."""
+    lines 8-10). Returns the loss, its terms, the GRU state h_t at every entry of the sequences (B, T + 1,
+    hidden: the states dreams can start from) and the mask of valid transitions. MSE is summed over the z
+    dimensions, averaged over transitions."""
     z, a, r, d = batch["z"], batch["a"], batch["r"], batch["d"]
     first, last = batch["first"], batch["last"]
     B, T1, _ = z.shape
     h = torch.zeros(B, wm.hidden, device=z.device)
-    hs_before, hs_after = [], []
-    for t in range(T1 - 1):
+    hs, hs_after = [], []
+    for t in range(T1):
         h = h * (1 - first[:, t, None])  # a new episode starts from h = 0
-        hs_before.append(h)
-        h = wm.step(h, z[:, t], a[:, t])
-        hs_after.append(h)
-    h_before, h_next = torch.stack(hs_before, 1), torch.stack(hs_after, 1)  # (B, T, hidden)
+        hs.append(h)
+        if t < T1 - 1:
+            h = wm.step(h, z[:, t], a[:, t])
+            hs_after.append(h)
+    h_entry, h_next = torch.stack(hs, 1), torch.stack(hs_after, 1)  # (B, T + 1, hidden), (B, T, hidden)
     z_hat, r_out, d_logit = wm.heads(h_next)
     valid = 1 - last[:, :-1]  # no transition out of an episode's final observation
     n = valid.sum().clamp(min=1)
@@ -577,7 +577,24 @@ def world_model_loss(wm, reward_dec, batch: dict[str, torch.Tensor], args: Args)
     loss_r = (reward_dec.loss(r_out, r[:, :-1]) * valid).sum() / n
     loss_d = (F.binary_cross_entropy_with_logits(d_logit, d[:, :-1], reduction="none") * valid).sum() / n
     loss = args.wm_z_coef * loss_z + args.wm_reward_coef * loss_r + args.wm_done_coef * loss_d
-    return loss, {"loss_z": loss_z, "loss_r": loss_r, "loss_d": loss_d}, h_before, valid
+    return loss, {"loss_z": loss_z, "loss_r": loss_r, "loss_d": loss_d}, h_entry, valid
+
+
+def dream_starts(h_entry: torch.Tensor, batch: dict[str, torch.Tensor], imag_from: str):
+    """The states (h, z) that dreams start from, and their weights (0 for an episode's final observation,
+    which has no next step to dream).
+
+    last (the default): one per replayed sequence, its newest entry. Algorithm 1 encodes "the first
+    observation" of a dream and the text gives observations "only at the first step": one dream per
+    sequence, whose FLOPs match the paper's table (docs/paper_readings.md). The newest entry is the one
+    whose h_t has read the whole sequence, like h_t when acting; earlier entries of a sequence sampled
+    mid-episode have an h_t that started from 0 at the sequence's start, which acting never sees.
+    all: every entry that has a next one (DreamerV3's starts)."""
+    if imag_from == "last":
+        return h_entry[:, -1], batch["z"][:, -1], 1 - batch["last"][:, -1]
+    n = h_entry.shape[0] * (h_entry.shape[1] - 1)
+    h0 = h_entry[:, :-1].reshape(n, -1)
+    return h0, batch["z"][:, :-1].reshape(n, -1), (1 - batch["last"][:, :-1]).reshape(n)
 
 
 def ac_features(h: torch.Tensor, z: torch.Tensor, ac_input: str) -> torch.Tensor:
@@ -659,6 +676,7 @@ def make_envs(args: Args, num_envs: int):
             "RoboDesk-v0",
             task=args.task,
             render_quality=args.render_quality,
+            action_repeat=ACTION_REPEAT["robodesk"],
             episode_length=args.episode_length,
         )
         for _ in range(num_envs)
@@ -692,7 +710,7 @@ def action_for_env(a: torch.Tensor, discrete: bool) -> np.ndarray:
 class Agent(nn.Module):
     """The trainable part of GW-Dreamer: world model, actor, critic (and the slow critic)."""
 
-    def __init__(self, env: str, z_dim: int, reward_loss: str, ac_input: str = "h"):
+    def __init__(self, env: str, z_dim: int, reward_loss: str, ac_input: str = "h", zero_init: bool = False):
         super().__init__()
         s = SIZES[env]
         self.discrete = env == "simple_shapes"
@@ -702,8 +720,12 @@ class Agent(nn.Module):
         ac_in = s["gru_hidden"] + (z_dim if ac_input == "hz" else 0)
         self.actor = Actor(ac_in, s["actions"], s["ac_layers"], self.discrete)
         self.critic = Critic(ac_in, s["ac_layers"])
-        self.slow_critic = copy.deepcopy(self.critic).requires_grad_(False)
         self.reward_dec = RewardDecoder(reward_loss, self.twohot)
+        if zero_init:  # DreamerV3: reward and value predictions start at 0 (an experiment here)
+            for last in (self.wm.reward_head[-1], self.critic.net[-1]):
+                nn.init.zeros_(last.weight)
+                nn.init.zeros_(last.bias)
+        self.slow_critic = copy.deepcopy(self.critic).requires_grad_(False)
 
     def features(self, h: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         return ac_features(h, z, self.ac_input)
@@ -830,14 +852,31 @@ def count_flops(fn):
 
 
 def updates_due(env_steps: int, args: Args) -> int:
-    """Training updates owed after ``env_steps`` environment steps.
+    """Training updates owed after ``env_steps`` environment steps (the paper's unit).
 
-    The paper's "train ratio" (4 Simple Shapes, 2 RoboDesk) is read as environment steps per update:
-    Algorithm 1 collects n transitions then makes m updates, here m = 1 update per n = train_ratio steps,
-    i.e. 5,000 updates by the paper's 20,000-step criterion. DreamerV3's meaning (replayed steps per env
-    step) would give one update of 64 x 32 replayed steps per 512 env steps, 39 updates by 20,000 steps:
-    too few to train a world model and an actor-critic from scratch, so it cannot be the paper's."""
-    return int(max(env_steps - args.learning_starts, 0) / args.train_ratio)
+    The paper's "train ratio" (4 Simple Shapes, 2 RoboDesk) is read as agent steps per update: Algorithm
+    1 collects n transitions then makes m updates, here m = 1 update per n = train_ratio agent steps,
+    i.e. 4,750 updates by the paper's 20,000-step Simple Shapes criterion (after 1,000 random steps), and
+    one update per 8 simulator frames on RoboDesk. DreamerV3's meaning (replayed steps per env step)
+    would give one update of 64 x 32 replayed steps per 512 env steps, 39 updates by 20,000 steps: too
+    few to train a world model and an actor-critic from scratch, so it cannot be the paper's."""
+    agent_steps = max(env_steps - args.learning_starts, 0) / ACTION_REPEAT[args.env]
+    return int(agent_steps / args.train_ratio)
+
+
+def schedule(args: Args) -> str:
+    """One line that says how this run reads the paper's training schedule (printed at start)."""
+    repeat = ACTION_REPEAT[args.env]
+    starts = args.batch_size * (1 if args.imag_from == "last" else args.batch_length)
+    unit = "agent steps" if repeat == 1 else f"simulator frames ({repeat} per agent step)"
+    last = args.imag_from == "last"
+    where = "the newest state of each replayed sequence" if last else "every replayed state"
+    return (
+        f"schedule: one update per {args.train_ratio:g} agent steps (train ratio) after "
+        f"{args.learning_starts:,} random steps; world model on {args.batch_size} x {args.batch_length} "
+        f"replayed steps; {starts:,} dreams of {args.imag_horizon} steps from {where} (--imag-from "
+        f"{args.imag_from}); {args.total_steps:,} env steps, counted in {unit}"
+    )
 
 
 def train_update(agent: Agent, opts: dict, replay: Replay, args: Args, state: dict, dev) -> dict:
@@ -845,20 +884,14 @@ def train_update(agent: Agent, opts: dict, replay: Replay, args: Args, state: di
     rollouts dreamt from the replayed states (Algorithm 1, lines 6-14)."""
     raw = replay.sample(args.batch_size, args.batch_length)
     batch = {k: torch.as_tensor(v, device=dev) for k, v in raw.items()}
-    loss_wm, terms, h_before, valid = world_model_loss(agent.wm, agent.reward_dec, batch, args)
+    loss_wm, terms, h_entry, valid = world_model_loss(agent.wm, agent.reward_dec, batch, args)
     if not torch.isfinite(loss_wm):
         raise FloatingPointError(f"non-finite world-model loss at env step {state['env_steps']:,}")
     opts["wm"].zero_grad(set_to_none=True)
     loss_wm.backward()
     nn.utils.clip_grad_norm_(agent.wm.parameters(), 1000.0)
     opts["wm"].step()
-    # Imagination starts: every replayed (h_t, z_t), or a random subset of them (--imag-starts).
-    h0 = h_before.detach().reshape(-1, agent.wm.hidden)
-    z0 = batch["z"][:, :-1].reshape(len(h0), -1)
-    start_w = (1 - batch["last"][:, :-1]).reshape(-1)
-    if args.imag_starts and args.imag_starts < len(h0):
-        pick = torch.randperm(len(h0), device=dev)[: args.imag_starts]
-        h0, z0, start_w = h0[pick], z0[pick], start_w[pick]
+    h0, z0, start_w = dream_starts(h_entry.detach(), batch, args.imag_from)
     hs, acts, rews, conts = imagine(
         agent.wm, agent.actor, agent.reward_dec, h0, z0, args.imag_horizon, agent.ac_input
     )
@@ -925,7 +958,8 @@ def main(args: Args) -> dict:
     random.seed(args.seed)
     np.random.seed(args.seed)
     torch.manual_seed(args.seed)
-    agent = Agent(args.env, encoder.z_dim, args.reward_loss, args.ac_input).to(dev)
+    agent = Agent(args.env, encoder.z_dim, args.reward_loss, args.ac_input, args.zero_init).to(dev)
+    agent.wm.detach_z = args.heads_read_sg_z
     discrete = agent.discrete
     ref = ss_reference_returns() if args.env == "simple_shapes" else None
 
@@ -988,6 +1022,7 @@ def main(args: Args) -> dict:
         f"[gw_dreamer] {model_name.upper()}-Dreamer on {args.env}{task}: world model {n_params['wm']:,}, "
         f"actor {n_params['actor']:,}, critic {n_params['critic']:,} parameters (+ {frozen:,} frozen)"
     )
+    print(f"[gw_dreamer] {schedule(args)}")
     if args.env == "robodesk":
         seen = args.task in encoder.expert_tasks
         print(
@@ -1045,6 +1080,7 @@ def main(args: Args) -> dict:
             )
 
     # ------------------------------------------------------------------------------------------
+    repeat = ACTION_REPEAT[args.env]
     envs_ = make_envs(args, args.num_envs)
     obs, _ = envs_.reset(seed=args.seed + state["env_steps"])
     h = torch.zeros(args.num_envs, agent.wm.hidden, device=dev)
@@ -1078,7 +1114,7 @@ def main(args: Args) -> dict:
         first = np.zeros(args.num_envs, np.float32)
         ep_ret += r
         ep_succ += step_success(info, args.num_envs)
-        state["env_steps"] += args.num_envs
+        state["env_steps"] += args.num_envs * repeat  # the paper's unit: simulator frames on RoboDesk
         if done.any():
             ends = np.flatnonzero(done)
             z_final = encoder(final_observations(info, ends)).cpu().numpy()
@@ -1106,12 +1142,13 @@ def main(args: Args) -> dict:
             state["flops"] += state["flops_per_update"]
 
         step = state["env_steps"]
-        if step % args.log_every < args.num_envs and last_log:
+        if step % args.log_every < args.num_envs * repeat and last_log:
             sps = (step - steps0) / max(time.time() - t0, 1e-9)
             for k, v in last_log.items():
                 writer.add_scalar(f"losses/{k}", v, step)
             writer.add_scalar("charts/SPS", sps, step)
             writer.add_scalar("charts/updates", state["updates"], step)
+            writer.add_scalar("charts/agent_steps", step // repeat, step)
             writer.add_scalar("charts/train_flops", state["flops"], step)
             smooth = np.mean(state["recent"]) if state["recent"] else float("nan")
             eta = (args.total_steps - step) / max(sps, 1e-9) / 60
@@ -1159,6 +1196,7 @@ def main(args: Args) -> dict:
     wall = time.time() - t0
     result = {
         "env_steps": state["env_steps"],
+        "agent_steps": state["env_steps"] // ACTION_REPEAT[args.env],
         "updates": state["updates"],
         "train_flops": state["flops"],
         "criterion_step": state["criterion_step"],

@@ -56,8 +56,8 @@ class Args:
     torch_threads: int = 0
     """torch CPU threads (0: torch's default)"""
     cpu_preset: bool = False
-    """Simple Shapes settings measured on a 2-core CPU (see CPU_PRESET and the README); flags left at
-    their paper default take the preset's value"""
+    """Simple Shapes on a 2-core CPU: GW updates on 256 replayed observations instead of 2,048 (see
+    CPU_PRESET); flags given explicitly win"""
 
     # frozen VAEs (pretrain_vae_gw.py --stages collect vae)
     checkpoint_dir: str = "checkpoints"
@@ -91,11 +91,12 @@ class Args:
 
     # training (appendix Table "GW-Dreamer training")
     total_steps: int | None = None
-    """environment steps (default 100,000 Simple Shapes, 1,000,000 RoboDesk)"""
+    """environment steps, in the paper's unit: agent steps on Simple Shapes, simulator frames on RoboDesk
+    (4 per agent step: its action repeat); default 100,000 Simple Shapes, 1,000,000 RoboDesk"""
     num_envs: int = 1
     """environments stepped together"""
     learning_starts: int = 1_000
-    """random-policy steps that fill the replay buffer before the first update"""
+    """random-policy environment steps that fill the replay buffer before the first update"""
     buffer_size: int = 100_000
     """replay capacity in transitions"""
     batch_size: int | None = None
@@ -103,13 +104,15 @@ class Args:
     batch_length: int | None = None
     """transitions per replayed sequence (default 32 Simple Shapes, 128 RoboDesk)"""
     train_ratio: float | None = None
-    """the table's train ratio (default 4 Simple Shapes, 2 RoboDesk), read as environment steps per
-    training update (see `updates_due`)"""
+    """the table's train ratio (default 4 Simple Shapes, 2 RoboDesk), read as agent steps per training
+    update (see `updates_due`)"""
     imag_horizon: int = 20
     """imagined steps per rollout"""
-    imag_starts: int | None = None
-    """imagined rollouts per update, started from this many of the batch's replayed states taken at
-    random (default: all batch_size x batch_length of them)"""
+    imag_from: Literal["last", "all"] = "last"
+    """where dreams start. last: one dream per replayed sequence, from its newest state (the real z_t
+    there and the h_t of a world model that has read the whole sequence), batch_size dreams per update:
+    the paper's "first observation" reading, which its FLOPs table supports (docs/paper_readings.md).
+    all: from every replayed state, batch_size x batch_length dreams (DreamerV3's)"""
     wm_lr: float | None = None
     """world-model Adam learning rate (default 1e-3 Simple Shapes, 3e-4 RoboDesk)"""
     ac_lr: float = 3e-4
@@ -127,8 +130,10 @@ class Args:
     """discount (DreamerV3)"""
     lam: float = 0.95
     """lambda of the lambda-returns"""
-    entropy_coef: float = 3e-4
-    """actor entropy regulariser (DreamerV3)"""
+    entropy_coef: float = 3e-3
+    """actor entropy regulariser. The paper gives none; DreamerV3's 3e-4 goes with its actor rate of 3e-5,
+    and the paper's rate is 10x that (3e-4), so the bonus keeps DreamerV3's ratio to it: with 3e-4 the
+    policy collapses onto one or two actions in 2 of 4 Simple Shapes runs (docs/experiments.md)"""
     slow_critic_decay: float = 0.98
     """EMA decay of the slow critic that regularises the critic (DreamerV3)"""
     return_norm_decay: float = 0.99
@@ -141,8 +146,8 @@ class Args:
     """RoboDesk episode length in physics-control repeats (paper: 2000, i.e. 500 agent steps)"""
 
     # evaluation, logging, checkpoints
-    eval_every: int = 5_000
-    """environment steps between evaluations"""
+    eval_every: int | None = None
+    """environment steps between evaluations (default 5,000 Simple Shapes, 50,000 RoboDesk)"""
     eval_episodes: int = 10
     """episodes per evaluation (and for --eval-only)"""
     criterion: float = 0.75
@@ -183,6 +188,7 @@ class Args:
             ("batch_length", 32, 128),
             ("train_ratio", 4.0, 2.0),
             ("wm_lr", 1e-3, 3e-4),
+            ("eval_every", 5_000, 50_000),
             ("gw_lr_start", 3e-3, 1e-4),
             ("gw_lr_max", 1e-2, 3e-4),
             ("gw_lr_end", 1e-3, 1e-4),
@@ -196,14 +202,9 @@ class Args:
         return self
 
 
-# Settings measured on this 2-core CPU (README): fewer imagination starts per update and fewer updates
-# than the paper's GPU run; every network keeps the paper's size.
-CPU_PRESET = {
-    "total_steps": 30_000,
-    "imag_starts": 256,
-    "train_ratio": 8.0,
-    "gw_batch_size": 256,
-}
+# A smaller GW batch for a 2-core CPU: the contrastive loss compares every pair of a batch, so a GW
+# update costs ~15x more at 2,048 than at 256 (the paper gives no batch for the end-to-end GW).
+CPU_PRESET = {"gw_batch_size": 256}
 
 # Network sizes of the appendix tables ("GRU architecture", "World Model heads", "Actor-Critic").
 SIZES = {
@@ -212,6 +213,10 @@ SIZES = {
     # reads h_t (text), so its input is 1024 and its 4 hidden layers are 512 wide as listed.
     "robodesk": {"gru_in": 1024, "gru_hidden": 1024, "z_head": (512, 512), "ac_layers": 4, "actions": 5},
 }
+# Simulator frames per agent step. The paper counts RoboDesk "environment steps" in frames ("2,000
+# environment steps but with an action repetition of 4 steps, leading to 500 chosen actions"), so step
+# counts (--total-steps, criteria, logs) are frames there; Simple Shapes has no action repeat.
+ACTION_REPEAT = {"simple_shapes": 1, "robodesk": 4}
 ENV_SPECS = {  # must agree with pretrain_vae_gw.py (checked against the checkpoints)
     "simple_shapes": {"image": 32, "attr": 11, "latent": 10, "z": 10, "gw_hidden": 64},
     "robodesk": {"image": 64, "attr": 76, "latent": 40, "z": 76, "gw_hidden": 512},
@@ -465,17 +470,20 @@ class WorldModel(nn.Module):
             layers += [nn.Linear(cin, width), nn.ReLU()]
             cin = width
         self.z_head = nn.Sequential(*layers, nn.Linear(cin, z_dim), nn.Tanh())
-        # The tables list three hidden layers of 256; their parameter counts would fit two.
-        self.reward_head = mlp(s["gru_hidden"] + z_dim, 256, reward_out, 3)
-        self.done_head = mlp(s["gru_hidden"] + z_dim, 256, 1, 3)
+        # Two hidden layers of 256: the tables draw three, but all four of their parameter counts (reward
+        # 150,000 / 413,000, done 85,000 / 348,000) are those of two (docs/paper_readings.md).
+        self.reward_head = mlp(s["gru_hidden"] + z_dim, 256, reward_out, 2)
+        self.done_head = mlp(s["gru_hidden"] + z_dim, 256, 1, 2)
         self.hidden = s["gru_hidden"]
 
     def step(self, h: torch.Tensor, z: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
         return self.gru(self.inp(torch.cat([z, a], -1)), h)
 
+    detach_z = False  # --heads-read-sg-z: the reward and done heads read sg(z_{t+1}) (an experiment)
+
     def heads(self, h_next: torch.Tensor):
         z_next = self.z_head(h_next)
-        feat = torch.cat([h_next, z_next], -1)
+        feat = torch.cat([h_next, z_next.detach() if self.detach_z else z_next], -1)
         return z_next, self.reward_head(feat), self.done_head(feat).squeeze(-1)
 
 
@@ -619,19 +627,21 @@ class Replay:
 # --------------------------------------------------------------------------------------------------
 def world_model_loss(wm, reward_dec, batch: dict[str, torch.Tensor], args: Args):
     """L_WM = coef_z MSE(z_{t+1}) + coef_r L_r + coef_d BCE(d_{t+1}) on replayed sequences (Algorithm 1,
-    lines 8-10). Returns the loss, its terms and the GRU states h_t before each entry (imagination
-    starts). MSE is summed over the z dimensions, averaged over transitions."""
+    lines 8-10). Returns the loss, its terms, the GRU state h_t at every entry of the sequences (B, T + 1,
+    hidden: the states dreams can start from) and the mask of valid transitions. MSE is summed over the z
+    dimensions, averaged over transitions."""
     z, a, r, d = batch["z"], batch["a"], batch["r"], batch["d"]
     first, last = batch["first"], batch["last"]
     B, T1, _ = z.shape
     h = torch.zeros(B, wm.hidden, device=z.device)
-    hs_before, hs_after = [], []
-    for t in range(T1 - 1):
+    hs, hs_after = [], []
+    for t in range(T1):
         h = h * (1 - first[:, t, None])  # a new episode starts from h = 0
-        hs_before.append(h)
-        h = wm.step(h, z[:, t], a[:, t])
-        hs_after.append(h)
-    h_before, h_next = torch.stack(hs_before, 1), torch.stack(hs_after, 1)  # (B, T, hidden)
+        hs.append(h)
+        if t < T1 - 1:
+            h = wm.step(h, z[:, t], a[:, t])
+            hs_after.append(h)
+    h_entry, h_next = torch.stack(hs, 1), torch.stack(hs_after, 1)  # (B, T + 1, hidden), (B, T, hidden)
     z_hat, r_out, d_logit = wm.heads(h_next)
     valid = 1 - last[:, :-1]  # no transition out of an episode's final observation
     n = valid.sum().clamp(min=1)
@@ -639,7 +649,24 @@ def world_model_loss(wm, reward_dec, batch: dict[str, torch.Tensor], args: Args)
     loss_r = (reward_dec.loss(r_out, r[:, :-1]) * valid).sum() / n
     loss_d = (F.binary_cross_entropy_with_logits(d_logit, d[:, :-1], reduction="none") * valid).sum() / n
     loss = args.wm_z_coef * loss_z + args.wm_reward_coef * loss_r + args.wm_done_coef * loss_d
-    return loss, {"loss_z": loss_z, "loss_r": loss_r, "loss_d": loss_d}, h_before, valid
+    return loss, {"loss_z": loss_z, "loss_r": loss_r, "loss_d": loss_d}, h_entry, valid
+
+
+def dream_starts(h_entry: torch.Tensor, batch: dict[str, torch.Tensor], imag_from: str):
+    """The states (h, z) that dreams start from, and their weights (0 for an episode's final observation,
+    which has no next step to dream).
+
+    last (the default): one per replayed sequence, its newest entry. Algorithm 1 encodes "the first
+    observation" of a dream and the text gives observations "only at the first step": one dream per
+    sequence, whose FLOPs match the paper's table (docs/paper_readings.md). The newest entry is the one
+    whose h_t has read the whole sequence, like h_t when acting; earlier entries of a sequence sampled
+    mid-episode have an h_t that started from 0 at the sequence's start, which acting never sees.
+    all: every entry that has a next one (DreamerV3's starts)."""
+    if imag_from == "last":
+        return h_entry[:, -1], batch["z"][:, -1], 1 - batch["last"][:, -1]
+    n = h_entry.shape[0] * (h_entry.shape[1] - 1)
+    h0 = h_entry[:, :-1].reshape(n, -1)
+    return h0, batch["z"][:, :-1].reshape(n, -1), (1 - batch["last"][:, :-1]).reshape(n)
 
 
 def imagine(wm, actor, reward_dec, h0: torch.Tensor, z0: torch.Tensor, horizon: int):
@@ -715,6 +742,7 @@ def make_envs(args: Args, num_envs: int):
             "RoboDesk-v0",
             task=args.task,
             render_quality=args.render_quality,
+            action_repeat=ACTION_REPEAT["robodesk"],
             episode_length=args.episode_length,
         )
         for _ in range(num_envs)
@@ -888,14 +916,16 @@ def count_flops(fn):
 
 
 def updates_due(env_steps: int, args: Args) -> int:
-    """Training updates owed after ``env_steps`` environment steps.
+    """Training updates owed after ``env_steps`` environment steps (the paper's unit).
 
-    The paper's "train ratio" (4 Simple Shapes, 2 RoboDesk) is read as environment steps per update:
-    Algorithm 1 collects n transitions then makes m updates, here m = 1 update per n = train_ratio steps,
-    i.e. 5,000 updates by the paper's 20,000-step criterion. DreamerV3's meaning (replayed steps per env
-    step) would give one update of 64 x 32 replayed steps per 512 env steps, 39 updates by 20,000 steps:
-    too few to train a world model and an actor-critic from scratch, so it cannot be the paper's."""
-    return int(max(env_steps - args.learning_starts, 0) / args.train_ratio)
+    The paper's "train ratio" (4 Simple Shapes, 2 RoboDesk) is read as agent steps per update: Algorithm
+    1 collects n transitions then makes m updates, here m = 1 update per n = train_ratio agent steps,
+    i.e. 4,750 updates by the paper's 20,000-step Simple Shapes criterion (after 1,000 random steps), and
+    one update per 8 simulator frames on RoboDesk. DreamerV3's meaning (replayed steps per env step)
+    would give one update of 64 x 32 replayed steps per 512 env steps, 39 updates by 20,000 steps: too
+    few to train a world model and an actor-critic from scratch, so it cannot be the paper's."""
+    agent_steps = max(env_steps - args.learning_starts, 0) / ACTION_REPEAT[args.env]
+    return int(agent_steps / args.train_ratio)
 
 
 def gw_update(agent: Agent, opt, replay: Replay, args: Args, state: dict, dev) -> dict:
@@ -917,6 +947,21 @@ def gw_update(agent: Agent, opt, replay: Replay, args: Args, state: dict, dev) -
     return {"loss_gw": loss_gw} | {f"loss_{k}": v for k, v in terms.items()}
 
 
+def schedule(args: Args) -> str:
+    """One line that says how this run reads the paper's training schedule (printed at start)."""
+    repeat = ACTION_REPEAT[args.env]
+    starts = args.batch_size * (1 if args.imag_from == "last" else args.batch_length)
+    unit = "agent steps" if repeat == 1 else f"simulator frames ({repeat} per agent step)"
+    last = args.imag_from == "last"
+    where = "the newest state of each replayed sequence" if last else "every replayed state"
+    return (
+        f"schedule: one update per {args.train_ratio:g} agent steps (train ratio) after "
+        f"{args.learning_starts:,} random steps; world model on {args.batch_size} x {args.batch_length} "
+        f"replayed steps; {starts:,} dreams of {args.imag_horizon} steps from {where} (--imag-from "
+        f"{args.imag_from}); {args.total_steps:,} env steps, counted in {unit}"
+    )
+
+
 def train_update(agent: Agent, opts: dict, replay: Replay, args: Args, state: dict, dev) -> dict:
     """One global training step: ``gw_updates`` GW updates, the world model on replayed sequences encoded
     by the updated GW, then the actor-critic on rollouts dreamt from the replayed states (Algorithm 2)."""
@@ -926,20 +971,14 @@ def train_update(agent: Agent, opts: dict, replay: Replay, args: Args, state: di
     raw = replay.sample(args.batch_size, args.batch_length)
     batch = {k: torch.as_tensor(v, device=dev) for k, v in raw.items()}
     batch["z"] = agent.z(batch.pop("u_v"), batch.pop("u_attr"))  # current GW, alpha 0.5/0.5, no gradient
-    loss_wm, terms, h_before, valid = world_model_loss(agent.wm, agent.reward_dec, batch, args)
+    loss_wm, terms, h_entry, valid = world_model_loss(agent.wm, agent.reward_dec, batch, args)
     if not torch.isfinite(loss_wm):
         raise FloatingPointError(f"non-finite world-model loss at env step {state['env_steps']:,}")
     opts["wm"].zero_grad(set_to_none=True)
     loss_wm.backward()
     nn.utils.clip_grad_norm_(agent.wm.parameters(), 1000.0)
     opts["wm"].step()
-    # Imagination starts: every replayed (h_t, z_t), or a random subset of them (--imag-starts).
-    h0 = h_before.detach().reshape(-1, agent.wm.hidden)
-    z0 = batch["z"][:, :-1].reshape(len(h0), -1)
-    start_w = (1 - batch["last"][:, :-1]).reshape(-1)
-    if args.imag_starts and args.imag_starts < len(h0):
-        pick = torch.randperm(len(h0), device=dev)[: args.imag_starts]
-        h0, z0, start_w = h0[pick], z0[pick], start_w[pick]
+    h0, z0, start_w = dream_starts(h_entry.detach(), batch, args.imag_from)
     hs, acts, rews, conts = imagine(agent.wm, agent.actor, agent.reward_dec, h0, z0, args.imag_horizon)
     loss_actor, loss_critic, state["return_scale"], stats = actor_critic_loss(
         agent.actor, agent.critic, agent.slow_critic, agent.twohot, hs, acts, rews, conts,
@@ -1065,6 +1104,7 @@ def main(args: Args) -> dict:
         f"GW {n_params['gw']:,}, world model {n_params['wm']:,}, actor {n_params['actor']:,}, "
         f"critic {n_params['critic']:,} parameters (+ {frozen:,} frozen VAE)"
     )
+    print(f"[gw_dreamer_e2e] {schedule(args)}")
     if ref:
         print(
             f"[gw_dreamer_e2e] normalised return: random policy {ref[0]:.1f} -> 0, "
@@ -1115,6 +1155,7 @@ def main(args: Args) -> dict:
             )
 
     # ------------------------------------------------------------------------------------------
+    repeat = ACTION_REPEAT[args.env]
     envs_ = make_envs(args, args.num_envs)
     obs, _ = envs_.reset(seed=args.seed + state["env_steps"])
     h = torch.zeros(args.num_envs, agent.wm.hidden, device=dev)
@@ -1151,7 +1192,7 @@ def main(args: Args) -> dict:
         first = np.zeros(args.num_envs, np.float32)
         ep_ret += r
         ep_succ += step_success(info, args.num_envs)
-        state["env_steps"] += args.num_envs
+        state["env_steps"] += args.num_envs * repeat  # the paper's unit: simulator frames on RoboDesk
         if done.any():
             ends = np.flatnonzero(done)
             u_v_final, u_attr_final = (u.cpu().numpy() for u in vaes(final_observations(info, ends)))
@@ -1178,12 +1219,13 @@ def main(args: Args) -> dict:
             state["flops"] += state["flops_per_update"]
 
         step = state["env_steps"]
-        if step % args.log_every < args.num_envs and last_log:
+        if step % args.log_every < args.num_envs * repeat and last_log:
             sps = (step - steps0) / max(time.time() - t0, 1e-9)
             for k, v in last_log.items():
                 writer.add_scalar(f"charts/{k}" if k == "gw_lr" else f"losses/{k}", v, step)
             writer.add_scalar("charts/SPS", sps, step)
             writer.add_scalar("charts/updates", state["updates"], step)
+            writer.add_scalar("charts/agent_steps", step // repeat, step)
             writer.add_scalar("charts/train_flops", state["flops"], step)
             smooth = np.mean(state["recent"]) if state["recent"] else float("nan")
             eta = (args.total_steps - step) / max(sps, 1e-9) / 60
@@ -1232,6 +1274,7 @@ def main(args: Args) -> dict:
     wall = time.time() - t0
     result = {
         "env_steps": state["env_steps"],
+        "agent_steps": state["env_steps"] // ACTION_REPEAT[args.env],
         "updates": state["updates"],
         "train_flops": state["flops"],
         "criterion_step": state["criterion_step"],

@@ -56,7 +56,7 @@ def replay_errors(agent: G.Agent, replay: G.Replay, batches: int = 8) -> tuple[n
     errs, z_errs = [], []
     for _ in range(batches):
         b = {k: torch.as_tensor(v) for k, v in replay.sample(64, 32).items()}
-        h_before = G.world_model_loss(agent.wm, agent.reward_dec, b, G.Args())[2]
+        h_before = G.world_model_loss(agent.wm, agent.reward_dec, b, G.Args())[2][:, :-1]  # h_t of each t
         z, a = b["z"][:, :-1], b["a"][:, :-1]
         h_next = agent.wm.step(h_before.flatten(0, 1), z.flatten(0, 1), a.flatten(0, 1))  # GRUCell: 2-D
         z_hat, r_out, _ = agent.wm.heads(h_next.view(*h_before.shape))
@@ -68,10 +68,11 @@ def replay_errors(agent: G.Agent, replay: G.Replay, batches: int = 8) -> tuple[n
 
 @torch.no_grad()
 def dream_advantages(agent: G.Agent, replay: G.Replay, args: G.Args) -> dict:
-    """Lambda-returns and advantages in dreams from one replayed 64 x 32 batch, as in training."""
+    """Lambda-returns and advantages in dreams from replayed 64 x 32 batches, from every replayed state
+    (more dreams than one update makes, for steadier shares)."""
     b = {k: torch.as_tensor(v) for k, v in replay.sample(64, 32).items()}
-    h_before = G.world_model_loss(agent.wm, agent.reward_dec, b, args)[2]
-    h0, z0 = h_before.reshape(-1, agent.wm.hidden), b["z"][:, :-1].reshape(-1, b["z"].shape[-1])
+    h_entry = G.world_model_loss(agent.wm, agent.reward_dec, b, args)[2]
+    h0, z0, _ = G.dream_starts(h_entry, b, "all")
     feats, acts, rews, conts = G.imagine(agent.wm, agent.actor, agent.reward_dec, h0, z0, 20, agent.ac_input)
     values = agent.twohot.mean(agent.critic(feats))
     returns = G.lambda_returns(rews, conts, values, args.gamma, args.lam)
@@ -87,14 +88,14 @@ def dream_advantages(agent: G.Agent, replay: G.Replay, args: G.Args) -> dict:
 
 
 def reward_from_true_z(agent: G.Agent, replay: G.Replay, seed: int, steps: int = 3_000) -> float:
-    """Held-out mean |r_hat - r| of a fresh reward head (3 x 256, two-hot) fitted to (z_{t+1}, r_{t+1})."""
+    """Held-out mean |r_hat - r| of a fresh reward head (2 x 256, two-hot) fitted to (z_{t+1}, r_{t+1})."""
     n = int(min(replay.count[0], replay.cap))
     keep = np.flatnonzero(replay.last[0, : n - 1] == 0)
     z_next, r = torch.as_tensor(replay.z[0, keep + 1]), torch.as_tensor(replay.r[0, keep])
     gen = torch.Generator().manual_seed(seed)
     perm = torch.randperm(len(keep), generator=gen)
     test, train = perm[:3_000], perm[3_000:]
-    head = G.mlp(z_next.shape[1], 256, 255, 3)
+    head = G.mlp(z_next.shape[1], 256, 255, 2)
     opt = torch.optim.Adam(head.parameters(), lr=1e-3)
     for _ in range(steps):
         b = train[torch.randint(len(train), (512,), generator=gen)]

@@ -64,7 +64,7 @@ def measure(env: str, a: Args, **overrides) -> dict:
     _, gw_flops = E.count_flops(gw_only)
     step()
     sec, gw_sec = timed(step, a), timed(gw_only, a)
-    starts = args.imag_starts or args.batch_size * args.batch_length
+    starts = args.batch_size * (1 if args.imag_from == "last" else args.batch_length)
     return {"starts": starts, "gw_batch": args.gw_batch_size, "s": sec, "gw_s": gw_sec, "flops": flops,
             "gw_flops": gw_flops, "env_steps_per_s": args.train_ratio / sec}  # fmt: skip
 

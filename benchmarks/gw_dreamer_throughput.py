@@ -1,9 +1,14 @@
-"""GW-Dreamer speed at the paper's network sizes: training updates/s (world model + actor-critic in
-imagination, FLOPs per update counted with torch.utils.flop_counter), and acting steps/s (frozen VAEs +
-GW + policy + environment), per environment. Weights are random: speed does not depend on them.
+"""GW-Dreamer speed and compute at the paper's network sizes: training updates/s (world model +
+actor-critic in imagination; FLOPs per update counted with torch.utils.flop_counter), the RL training
+FLOPs to the paper's criteria under both readings of where dreams start, and acting steps/s (frozen VAEs
++ GW + policy + environment). Weights are random: speed does not depend on them.
 
-    python benchmarks/gw_dreamer_throughput.py                      # both envs, paper and CPU settings
+    python benchmarks/gw_dreamer_throughput.py                      # both envs, both readings
     python benchmarks/gw_dreamer_throughput.py --envs simple_shapes --device cuda
+
+The paper's FLOPs table gives 5.41e15 RL training FLOPs for GW-Dreamer on RoboDesk push_green until its
+criterion at about 200,000 environment steps; the lines "FLOPs to the criterion" set each reading next to
+it, counting those steps as simulator frames (the paper's unit: 4 per agent step) and as agent steps.
 """
 
 import sys
@@ -71,9 +76,34 @@ def time_updates(env: str, a: Args, **overrides) -> dict:
     if a.device.startswith("cuda"):
         torch.cuda.synchronize()
     sec = (time.perf_counter() - t) / a.updates
-    starts = args.imag_starts or args.batch_size * args.batch_length
-    per_env_step = args.train_ratio / sec  # env steps/s that the updates alone allow (train ratio)
-    return {"starts": starts, "s_per_update": sec, "flops": flops, "env_steps_per_s": per_env_step}
+    starts = args.batch_size * (1 if args.imag_from == "last" else args.batch_length)
+    # env steps/s that the updates alone allow: train_ratio agent steps per update
+    per_env_step = args.train_ratio * G.ACTION_REPEAT[env] / sec
+    return {
+        "starts": starts,
+        "s_per_update": sec,
+        "flops": flops,
+        "env_steps_per_s": per_env_step,
+        "args": args,
+    }
+
+
+# The paper's criteria: Simple Shapes about 20,000 env steps (Figure 3), RoboDesk about 200,000 with
+# 5.41e15 RL training FLOPs for GW-Dreamer (Table "Training FLOPs", column "RL 1 task").
+PAPER_CRITERION = {"simple_shapes": (20_000, None), "robodesk": (200_000, 5.41e15)}
+
+
+def flops_to_criterion(env: str, r: dict) -> str:
+    steps, table = PAPER_CRITERION[env]
+    args, repeat = r["args"], G.ACTION_REPEAT[env]
+    updates = G.updates_due(steps, args)
+    line = f"    FLOPs to the paper's criterion ({steps:,} env steps = {steps // repeat:,} agent steps, "
+    line += f"{updates:,} updates): {updates * r['flops']:.2e}"
+    if table:
+        # the other unit: the same number counted in agent steps (frames = 4x as many)
+        updates_agent = G.updates_due(steps * repeat, args)
+        line += f" (table: {table:.2e}; {updates_agent * r['flops']:.2e} if the paper counted agent steps)"
+    return line
 
 
 def time_acting(env: str, width: int, a: Args) -> float:
@@ -99,15 +129,20 @@ if __name__ == "__main__":
     torch.manual_seed(0)
     print(f"device {a.device}, torch threads {torch.get_num_threads()}")
     for env in a.envs:
-        settings = [("paper", {})]
-        if env == "simple_shapes":
-            settings.append(("cpu-preset", {"cpu_preset": True}))
-        for name, overrides in settings:
-            r = time_updates(env, a, **overrides)
+        unit = (
+            "agent steps"
+            if G.ACTION_REPEAT[env] == 1
+            else f"simulator frames, {G.ACTION_REPEAT[env]} per agent step"
+        )
+        print(f"{env}: --total-steps and every step count are env steps ({unit})")
+        for imag_from in ("last", "all"):
+            r = time_updates(env, a, imag_from=imag_from)
             print(
-                f"{env:13s} {name:10s} update (imagination from {r['starts']:,} states): "
+                f"{env:13s} --imag-from {imag_from:4s}: {r['starts']:,} dreams per update, "
                 f"{1 / r['s_per_update']:.2f} updates/s ({r['s_per_update']:.2f} s), "
-                f"{r['flops'] / 1e9:.1f} GFLOP/update; updates allow {r['env_steps_per_s']:.1f} env steps/s"
+                f"{r['flops'] / 1e9:.1f} GFLOP/update ({r['flops'] / 1e9 / r['s_per_update']:.0f} GFLOP/s); "
+                f"updates allow {r['env_steps_per_s']:.1f} env steps/s"
             )
+            print(flops_to_criterion(env, r))
         for width in a.vae_widths:
             print(f"{env:13s} acting, VAE width {width:4d}: {time_acting(env, width, a):.1f} env steps/s")

@@ -13,7 +13,7 @@ from conftest import assert_episodes_separated, interrupt_run, run_script, tiny_
 import gw_dreamer as G
 
 TINY = [
-    "--learning-starts", "100", "--batch-size", "4", "--batch-length", "8", "--imag-starts", "32",
+    "--learning-starts", "100", "--batch-size", "4", "--batch-length", "8",
     "--imag-horizon", "5", "--train-ratio", "10", "--eval-episodes", "2", "--video-every", "0",
     "--log-every", "100",
 ]  # fmt: skip
@@ -39,6 +39,9 @@ def ss_run(pretrained):
 def test_simple_shapes_cli_run_trains_saves_and_logs(ss_run):
     tmp, log, agent = ss_run
     assert "GW-Dreamer on simple_shapes" in log and "done:" in log
+    # the log says how the schedule was read: the default dreams from each sequence's newest state
+    assert "one update per 10 agent steps" in log and "4 dreams of 5 steps from the newest state" in log
+    assert "250 env steps, counted in agent steps" in log
     ck = torch.load(agent, weights_only=False)
     assert ck["kind"] == "gw_dreamer" and ck["state"]["env_steps"] == 250
     assert ck["state"]["updates"] == (250 - 100) // 10  # one update per train_ratio env steps
@@ -98,15 +101,18 @@ def test_robodesk_cli_run(pretrained_robodesk):
     log = run_script(
         "gw_dreamer.py", tmp, "--env", "robodesk", "--task", "push_green",
         "--checkpoint-dir", str(tmp / "ck"), "--render-quality", "fast", *TINY, "--eval-episodes", "1",
-        "--total-steps", "200", "--episode-length", "240", "--batch-size", "2", "--imag-starts", "8",
-        "--eval-every", "1000", timeout=600,
+        "--total-steps", "800", "--episode-length", "240", "--batch-size", "2", "--eval-every", "4000",
+        timeout=600,
     )  # fmt: skip
     assert "GW-Dreamer on robodesk_push_green" in log and "final_success_count" in log
+    # steps are simulator frames (the paper's unit): 800 frames = 200 actions, one update per 10 actions
+    assert "800 env steps, counted in simulator frames (4 per agent step)" in log
+    assert "'env_steps': 800, 'agent_steps': 200, 'updates': 17" in log
     assert "push_green is a task it saw" in log  # the tiny GW's data: push_green expert + random
     ck = torch.load(
         tmp / "ck" / "robodesk" / "agents" / "gw_dreamer_gw_robodesk_push_green_s1.pt", weights_only=False
     )
-    assert ck["state"]["updates"] == 10 and ck["task"] == "push_green"
+    assert ck["state"]["updates"] == (800 - 100) // 4 // 10 and ck["task"] == "push_green"
 
 
 def test_clip_checkpoint_makes_clip_dreamer(pretrained):
@@ -125,8 +131,6 @@ def test_missing_or_mismatched_checkpoints_are_explained(pretrained, pretrained_
         G.main(ss_args(pretrained, eval_only=True, checkpoint=str(tmp_path / "none.pt")))
     with pytest.raises(ValueError, match="unknown RoboDesk task 'fly'"):
         G.main(G.Args(env="robodesk", task="fly", checkpoint_dir=str(pretrained_robodesk[0] / "ck")))
-    with pytest.raises(ValueError, match="--cpu-preset is for Simple Shapes"):
-        G.Args(env="robodesk", cpu_preset=True).resolve()
 
 
 def test_agent_checkpoint_reloads_to_identical_outputs(ss_run):
@@ -184,12 +188,12 @@ def test_world_model_loss_falls_on_a_fixed_batch(pretrained):
     opt = torch.optim.Adam(agent.wm.parameters(), lr=1e-3)
     losses = []
     for _ in range(60):
-        loss, terms, h_before, valid = G.world_model_loss(agent.wm, agent.reward_dec, batch, args)
+        loss, terms, h_entry, valid = G.world_model_loss(agent.wm, agent.reward_dec, batch, args)
         opt.zero_grad()
         loss.backward()
         opt.step()
         losses.append(loss.item())
-    assert h_before.shape == (16, 12, 64) and valid.shape == (16, 12)
+    assert h_entry.shape == (16, 13, 64) and valid.shape == (16, 12)
     assert losses[-1] < 0.5 * losses[0], losses[::10]
     assert terms["loss_z"] < 0.2 and terms["loss_d"] < 0.05  # the floor of the reward term is its entropy
 
@@ -255,7 +259,7 @@ def test_actor_critic_input_hz_reads_z_in_dreams_and_when_acting(pretrained, mon
     monkeypatch.setattr(
         G.Actor, "act", lambda self, x, mode=False: seen.append(x.shape[-1]) or act(self, x, mode)
     )
-    args = ss_args(pretrained, ac_input="hz", total_steps=120, eval_every=10**6, video_every=0, imag_starts=8)
+    args = ss_args(pretrained, ac_input="hz", total_steps=120, eval_every=10**6, video_every=0)
     monkeypatch.chdir(pretrained[0])  # its TensorBoard folder goes under the test's runs/
     G.main(args)
     assert seen and set(seen) == {74}
@@ -345,7 +349,7 @@ def test_flop_count_of_a_linear_layer():
     assert flops == 3 * (2 * 5 * 4 * 3)  # forward, gradient of the input, gradient of the weight
 
 
-def test_defaults_follow_the_tables_and_the_cpu_preset():
+def test_defaults_follow_the_tables():
     ss, rd = G.Args().resolve(), G.Args(env="robodesk").resolve()
     assert (ss.batch_size, ss.batch_length, ss.train_ratio, ss.wm_lr, ss.imag_horizon) == (
         64,
@@ -355,14 +359,15 @@ def test_defaults_follow_the_tables_and_the_cpu_preset():
         20,
     )
     assert (rd.batch_size, rd.batch_length, rd.train_ratio, rd.wm_lr, rd.ac_lr) == (32, 128, 2.0, 3e-4, 3e-4)
-    assert ss.buffer_size == rd.buffer_size == 100_000 and ss.lam == 0.95 and ss.imag_starts is None
-    cpu = G.Args(cpu_preset=True).resolve()
-    assert (cpu.imag_starts, cpu.train_ratio) == (G.CPU_PRESET["imag_starts"], G.CPU_PRESET["train_ratio"])
-    assert G.Args(cpu_preset=True, train_ratio=2.0).resolve().train_ratio == 2.0  # explicit flags win
+    assert ss.buffer_size == rd.buffer_size == 100_000 and ss.lam == 0.95 and ss.imag_from == "last"
     sizes = {
         k: sum(p.numel() for p in getattr(G.Agent("robodesk", 76, "twohot"), k).parameters()) for k in ("wm",)
     }
     assert 7.0e6 < sizes["wm"] < 8.5e6  # appendix Table "sizes": RoboDesk world model 7.8M
+    heads = G.Agent("robodesk", 76, "twohot").wm
+    # the tables' parameter counts of the heads (413,000 and 348,000 with a 256-wide reward output)
+    assert sum(p.numel() for p in heads.done_head.parameters()) == 347_905
+    assert sum(p.numel() for p in heads.reward_head.parameters()) == 413_440 - 257
 
 
 def test_attribute_control_feeds_the_true_attributes(pretrained, pretrained_robodesk):
@@ -387,3 +392,89 @@ def test_ctrl_c_saves_the_run_where_it_stopped(pretrained):
         "--env", "simple_shapes", "--checkpoint-dir", str(tmp / "ck"), *TINY, "--exp-name", "interrupted",
     )  # fmt: skip
     assert state["updates"] == (step - 100) // 10  # the updates owed by that step were made
+
+
+def test_dreams_start_from_the_newest_state_of_each_replayed_sequence():
+    """--imag-from last: one start per sequence, its last entry, with the h_t of a world model that has
+    read the whole sequence (from 0 again after an episode start) and weight 0 on an episode's final
+    observation; --imag-from all: every entry that has a next one."""
+    torch.manual_seed(0)
+    wm, args = G.Agent("simple_shapes", 10, "twohot").wm, G.Args().resolve()
+    B, T1 = 3, 6
+    first, last = torch.zeros(B, T1), torch.zeros(B, T1)
+    last[0, 2] = first[0, 3] = 1  # row 0: an episode ends at entry 2, the next one starts at entry 3
+    last[1, -1] = 1  # row 1: the newest entry is an episode's final observation
+    last[2, -2] = first[2, -1] = 1  # row 2: the newest entry starts a new episode
+    batch = {"z": torch.rand(B, T1, 10), "a": F.one_hot(torch.randint(0, 7, (B, T1)), 7).float()}
+    batch |= {"r": torch.zeros(B, T1), "d": torch.zeros(B, T1), "first": first, "last": last}
+    h_entry = G.world_model_loss(wm, RewardStub(), batch, args)[2]
+    h0, z0, w = G.dream_starts(h_entry, batch, "last")
+    assert h0.shape == (B, 64) and torch.equal(z0, batch["z"][:, -1])
+    torch.testing.assert_close(w, torch.tensor([1.0, 0.0, 1.0]))  # row 1 has no step to dream
+    # row 0 by hand: the world model restarts at entry 3 and reads entries 3 and 4 before the newest one
+    with torch.no_grad():
+        h = torch.zeros(1, 64)
+        for t in (3, 4):
+            h = wm.step(h, batch["z"][:1, t], batch["a"][:1, t])
+    torch.testing.assert_close(h0[:1], h)
+    assert torch.all(h0[1] != 0) and torch.all(h0[2] == 0)  # row 2: h = 0, as when acting
+    h_all, z_all, w_all = G.dream_starts(h_entry, batch, "all")
+    assert h_all.shape == (B * (T1 - 1), 64) and torch.equal(z_all[: T1 - 1], batch["z"][0, :-1])
+    torch.testing.assert_close(w_all, (1 - last[:, :-1]).reshape(-1))
+
+
+class RewardStub:
+    """Reward decoder of a 255-bin head that world_model_loss can score (values are not checked)."""
+
+    twohot = G.TwoHot()
+
+    def loss(self, out, r):
+        return self.twohot.loss(out, r)
+
+
+def mm_flops(rows: int, layers: list[tuple[int, int]], train: bool, input_grad: bool = False) -> int:
+    """Matrix-product FLOPs of an MLP on ``rows`` inputs: 2 rows in out per layer forward; in training
+    also the weight gradient of every layer and the input gradient of every layer whose input needs one
+    (all but the first, unless the network's input needs a gradient too)."""
+    fwd = [2 * rows * i * o for i, o in layers]
+    if not train:
+        return sum(fwd)
+    return 2 * sum(fwd) + sum(fwd[0 if input_grad else 1 :])
+
+
+def linears(net: nn.Module) -> list[tuple[int, int]]:
+    return [(m.in_features, m.out_features) for m in net.modules() if isinstance(m, nn.Linear)]
+
+
+@pytest.mark.parametrize("env", ["simple_shapes", "robodesk"])
+@pytest.mark.parametrize("imag_from", ["last", "all"])
+def test_update_flops_match_the_closed_form_count_of_the_layers(env, imag_from):
+    """The FLOPs that count_flops reports for one update (what charts/train_flops sums) agree within 10%
+    with a count made by hand from the layer sizes, for both readings of where dreams start."""
+    B, T, H = 3, 4, 5
+    args = G.Args(env=env, batch_size=B, batch_length=T, imag_horizon=H, imag_from=imag_from).resolve()
+    z_dim, n_act = G.ENV_SPECS[env]["z"], G.SIZES[env]["actions"]
+    torch.manual_seed(0)
+    agent = G.Agent(env, z_dim, "twohot")
+    replay = G.Replay(200, 1, z_dim, n_act, 0)
+    for t in range(40):
+        replay.add([0], np.full((1, z_dim), 0.1), np.eye(n_act)[[t % n_act]], [-1.0], [0], [t == 0], [0])
+    state = {"env_steps": 0, "updates": 0, "return_scale": 0.0}
+    opts = G.make_optimizers(agent, args)
+    _, counted = G.count_flops(lambda: G.train_update(agent, opts, replay, args, state, "cpu"))
+    wm, hid = agent.wm, agent.wm.hidden
+    gru = [(wm.gru.input_size, 3 * hid), (hid, 3 * hid)]  # a GRU cell: input and hidden products
+    heads = linears(wm.z_head) + linears(wm.reward_head) + linears(wm.done_head)
+    n = B * T  # world model: T steps of B sequences, trained
+    world = mm_flops(n, linears(wm.inp), True) + mm_flops(n, gru, True, True) + mm_flops(n, heads, True, True)
+    starts = B if imag_from == "last" else B * T
+    dream = H * (
+        mm_flops(starts, linears(agent.actor), False) + mm_flops(starts, linears(wm.inp) + gru + heads, False)
+    )
+    ac = (
+        mm_flops((H + 1) * starts, linears(agent.critic), True)  # critic on every dreamt state
+        + mm_flops(H * starts, linears(agent.slow_critic), False)  # its slow copy's targets
+        + mm_flops(H * starts, linears(agent.actor), True)  # log-probabilities of the dreamt actions
+    )
+    expected = world + dream + ac
+    assert abs(counted - expected) < 0.1 * expected, (counted, expected)

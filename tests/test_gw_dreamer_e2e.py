@@ -13,7 +13,7 @@ import gw_dreamer_e2e as E
 import pretrain_vae_gw as P
 
 TINY = [
-    "--learning-starts", "100", "--batch-size", "4", "--batch-length", "8", "--imag-starts", "32",
+    "--learning-starts", "100", "--batch-size", "4", "--batch-length", "8",
     "--imag-horizon", "5", "--train-ratio", "10", "--gw-batch-size", "64", "--eval-episodes", "2",
     "--video-every", "0", "--log-every", "100",
 ]  # fmt: skip
@@ -57,9 +57,7 @@ def test_simple_shapes_cli_run_trains_the_gw_saves_and_logs(ss_run):
 
 def flops_of_one_update(gw_batch: int) -> int:
     torch.manual_seed(0)
-    args = E.Args(
-        batch_size=2, batch_length=4, imag_starts=4, imag_horizon=2, gw_batch_size=gw_batch
-    ).resolve()
+    args = E.Args(batch_size=2, batch_length=4, imag_horizon=2, gw_batch_size=gw_batch).resolve()
     agent = E.Agent("simple_shapes", "twohot")
     opts, replay = E.make_optimizers(agent, args), fill_replay_with_noise(60)
     state = {"env_steps": 0, "gw_updates": 0, "return_scale": 0.0, "updates": 0}
@@ -121,13 +119,13 @@ def test_robodesk_cli_run(pretrained_robodesk):
     log = run_script(
         "gw_dreamer_e2e.py", tmp, "--env", "robodesk", "--task", "push_green",
         "--checkpoint-dir", str(tmp / "ck"), "--render-quality", "fast", *TINY, "--eval-episodes", "1",
-        "--total-steps", "200", "--episode-length", "240", "--batch-size", "2", "--imag-starts", "8",
-        "--eval-every", "1000", timeout=600,
+        "--total-steps", "800", "--episode-length", "240", "--batch-size", "2", "--eval-every", "4000",
+        timeout=600,
     )  # fmt: skip
     assert "end to end on robodesk_push_green" in log and "final_success_count" in log
     ck = torch.load(tmp / "ck" / "robodesk" / "agents" / "gw_dreamer_e2e_gw_robodesk_push_green_s1.pt",
                     weights_only=False)  # fmt: skip
-    assert ck["state"]["updates"] == 10 and ck["state"]["gw_updates"] == 20
+    assert ck["state"]["updates"] == 17 and ck["state"]["gw_updates"] == 34  # 200 actions of 4 frames
 
 
 # --------------------------------------------------------------------------------------------------
@@ -168,7 +166,7 @@ def test_joint_training_lowers_the_gw_losses_and_keeps_the_vaes_frozen(pretraine
     vae_before = {k: v.clone() for k, v in vaes.state_dict().items()}
     replay = random_replay(vaes, 300)
     torch.manual_seed(0)
-    args = E.Args(batch_size=4, batch_length=8, imag_starts=16, imag_horizon=5, gw_batch_size=128).resolve()
+    args = E.Args(batch_size=4, batch_length=8, imag_horizon=5, gw_batch_size=128).resolve()
     agent = E.Agent("simple_shapes", "twohot")
     gw_before = {k: v.clone() for k, v in agent.gw.state_dict().items()}
     wm_before = {k: v.clone() for k, v in agent.wm.state_dict().items()}
@@ -191,7 +189,7 @@ def test_joint_training_lowers_the_gw_losses_and_keeps_the_vaes_frozen(pretraine
 
 def test_world_model_and_actor_critic_send_no_gradient_into_the_gw():
     torch.manual_seed(0)
-    args = E.Args(batch_size=2, batch_length=4, imag_starts=4, imag_horizon=3, gw_updates=0).resolve()
+    args = E.Args(batch_size=2, batch_length=4, imag_horizon=3, gw_updates=0).resolve()
     agent = E.Agent("simple_shapes", "twohot")
     gw_before = {k: v.clone() for k, v in agent.gw.state_dict().items()}
     opts = E.make_optimizers(agent, args)

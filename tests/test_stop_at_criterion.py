@@ -10,8 +10,8 @@ import gw_dreamer as G
 import gw_dreamer_e2e as E
 
 SMALL = {
-    G: dict(imag_starts=32, imag_horizon=5, train_ratio=10.0),
-    E: dict(imag_starts=32, imag_horizon=5, train_ratio=10.0, gw_batch_size=64),
+    G: dict(imag_horizon=5, train_ratio=10.0),
+    E: dict(imag_horizon=5, train_ratio=10.0, gw_batch_size=64),
     D: DREAMER_SMALL | dict(train_ratio=4.0),
 }
 
