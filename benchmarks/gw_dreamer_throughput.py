@@ -145,4 +145,5 @@ if __name__ == "__main__":
             )
             print(flops_to_criterion(env, r))
         for width in a.vae_widths:
-            print(f"{env:13s} acting, VAE width {width:4d}: {time_acting(env, width, a):.1f} env steps/s")
+            rate = time_acting(env, width, a) * G.ACTION_REPEAT[env]  # agent steps/s -> env steps/s
+            print(f"{env:13s} acting, VAE width {width:4d}: {rate:.1f} env steps/s")
