@@ -29,7 +29,9 @@ import json
 import math
 import os
 import random
+import shutil
 import signal
+import sys
 import threading
 import time
 from dataclasses import asdict, dataclass
@@ -159,6 +161,9 @@ class Args:
     """environment steps between resumable checkpoints"""
     resume: bool = False
     """continue the run stored at --checkpoint (default: this run's agent checkpoint)"""
+    overwrite: bool = False
+    """replace an earlier run of the same name (its agent checkpoint, exported policy and runs/ folder);
+    without it a run whose files exist stops at start"""
     checkpoint: str | None = None
     """agent checkpoint (default <checkpoint_dir>/<env>/agents/<run name>.pt)"""
     eval_only: bool = False
@@ -180,7 +185,7 @@ class Args:
             if getattr(self, name) is None:
                 setattr(self, name, value)
         if self.deter % BLOCKS:
-            raise ValueError(f"--deter must be a multiple of the GRU's {BLOCKS} blocks, got {self.deter}")
+            raise UsageError(f"--deter {self.deter}: must be a multiple of the GRU's {BLOCKS} blocks")
         return self
 
 
@@ -268,12 +273,12 @@ class AttrVAE(nn.Module):
 def load_vae(path: Path, env: str) -> dict:
     make = PRETRAIN.format(env=env) + " --stages collect vae"
     if not path.is_file():
-        raise FileNotFoundError(f"no vae checkpoint at {path}; --obs vae needs one: make it with `{make}`")
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+        raise UsageError(f"no vae checkpoint at {path}; --obs vae needs one: make it with `{make}`")
+    ckpt = read_checkpoint(path, make)
     if ckpt.get("kind") != "vae":
-        raise ValueError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected 'vae'")
+        raise UsageError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected 'vae'")
     if ckpt.get("env") != env:
-        raise ValueError(
+        raise UsageError(
             f"{path} was made for env {ckpt.get('env')!r}, but this run is for env {env!r}; "
             f"make a matching one with `{make}`"
         )
@@ -298,7 +303,7 @@ class Observer(nn.Module):
                 self.vae_v.load_state_dict(vae["vae_v"])
                 self.vae_attr.load_state_dict(vae["vae_attr"])
             except RuntimeError as err:
-                raise ValueError(f"the VAE checkpoint does not fit the {env} networks: {err}") from err
+                raise UsageError(f"the VAE checkpoint does not fit the {env} networks: {err}") from err
             self.register_buffer("attr_mean", torch.as_tensor(vae["attr_mean"], dtype=torch.float32))
             self.register_buffer("attr_std", torch.as_tensor(vae["attr_std"], dtype=torch.float32))
         self.eval().requires_grad_(False)
@@ -780,6 +785,12 @@ def actor_critic_loss(
 # --------------------------------------------------------------------------------------------------
 # Environments and evaluation
 # --------------------------------------------------------------------------------------------------
+# Simulator frames per agent step. The paper counts RoboDesk "environment steps" in frames ("2,000
+# environment steps but with an action repetition of 4 steps, leading to 500 chosen actions"), so step
+# counts (--total-steps, criteria, logs) are frames there; Simple Shapes has no action repeat.
+ACTION_REPEAT = {"simple_shapes": 1, "robodesk": 4}
+
+
 def make_envs(args: Args, num_envs: int):
     """Vector env with same-step autoreset (info["final_obs"] holds the last observation)."""
     if args.env == "simple_shapes":
@@ -789,12 +800,13 @@ def make_envs(args: Args, num_envs: int):
     from envs.robodesk import TASKS
 
     if args.task not in TASKS:
-        raise ValueError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
+        raise UsageError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
     fns = [
         lambda: gym.make(
             "RoboDesk-v0",
             task=args.task,
             render_quality=args.render_quality,
+            action_repeat=ACTION_REPEAT["robodesk"],
             episode_length=args.episode_length,
         )
         for _ in range(num_envs)
@@ -902,20 +914,84 @@ def dream_filmstrip(agent: Agent, observer: Observer, args: Args, steps: int, se
 
 
 # --------------------------------------------------------------------------------------------------
-# Checkpoints and the exported expert policy
+# Safe runs: a new run never overwrites an earlier one, a resumed run is the same run, checkpoints are
+# written atomically, and bad settings or unreadable files stop the run at once with one line
 # --------------------------------------------------------------------------------------------------
+class UsageError(ValueError):
+    """A mistake in the command line or in the files it names: the CLI prints the message and exits 2."""
+
+
+def require(ok: bool, flag: str, value, rule: str) -> None:
+    if not ok:
+        raise UsageError(f"--{flag.replace('_', '-')} {value}: {rule}")
+
+
 def atomic_save(obj: dict, path: Path) -> None:
-    """Write to a temporary file then rename: an interruption never leaves a torn checkpoint."""
+    """Write to a temporary file of this process, then rename it over ``path``: an interruption (even
+    kill -9) leaves the previous file whole, and two processes never share a temporary file."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            torch.save(obj, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def read_checkpoint(path: Path, remake: str) -> dict:
+    """``torch.load``, or a message that names the file and the command that makes it again."""
+    try:
+        return torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as err:  # a truncated zip, a text file, a pickle of something else: many types
+        brief = " ".join(str(err).split())[:200]  # one line
+        raise UsageError(
+            f"cannot read {path} ({type(err).__name__}: {brief}); the file is damaged or is no checkpoint: "
+            f"make it again with `{remake}`"
+        ) from err
+
+
+def ensure_writable(folder: Path) -> None:
+    """Create ``folder`` and write a file in it now, rather than fail at the first save."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        probe = folder / f".write_test.{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as err:
+        raise UsageError(f"cannot write to {folder}: {err.strerror or err}") from err
+
+
+def claim_outputs(paths: list[Path], resume: bool, overwrite: bool) -> None:
+    """A new run stops before it would overwrite an earlier run's checkpoint or mix its TensorBoard
+    events with that run's; --overwrite removes them on purpose, --resume continues the run they hold."""
+    existing = [p for p in paths if p.exists()]
+    if resume or not existing:
+        return
+    if not overwrite:
+        raise UsageError(
+            f"{' and '.join(map(str, existing))} already exist from an earlier run: add --resume to continue "
+            "it, change --exp-name or --seed to start a separate one, or add --overwrite to replace it"
+        )
+    for p in existing:
+        shutil.rmtree(p) if p.is_dir() else p.unlink()
+
+
+def setting_changes(saved: dict, now: dict, keys) -> list[str]:
+    """``--flag value`` of each setting in ``keys`` whose saved value differs from this command's."""
+    out = []
+    for k in (k for k in keys if k in saved and saved[k] != now[k]):
+        value = " ".join(map(str, saved[k])) if isinstance(saved[k], (list, tuple)) else saved[k]
+        out.append(f"--{k.replace('_', '-')} {value}")
+    return out
 
 
 class StopRequest:
-    """Ctrl-C (SIGINT) or SIGTERM during training asks the loop to finish its env step and the updates
-    owed, save the agent and exit, so an interrupted run loses nothing and ``--resume`` continues it (a
-    save made inside an update would pair half-stepped optimisers). A second signal stops at once."""
+    """Ctrl-C (SIGINT) or SIGTERM asks the run to finish what it is doing, save and exit with code 130,
+    so an interrupted run loses nothing and ``--resume`` continues it (a save made in the middle of an
+    update would pair half-stepped optimisers). A second signal stops at once."""
 
     def __init__(self, tag: str):
         self.tag, self.requested, self.previous = tag, False, {}
@@ -932,8 +1008,31 @@ class StopRequest:
     def restore(self) -> None:
         for s, handler in self.previous.items():
             signal.signal(s, handler)
+        self.previous = {}
+
+    def __enter__(self) -> StopRequest:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.restore()
 
 
+def cli(main, args_type) -> None:
+    """Run ``main`` on the parsed command line; a UsageError is printed as one line (exit code 2), and
+    Ctrl-C outside the places that save prints one line too (exit code 130)."""
+    try:
+        main(tyro.cli(args_type))
+    except UsageError as err:
+        print(f"error: {err}", file=sys.stderr, flush=True)
+        raise SystemExit(2) from None
+    except KeyboardInterrupt:
+        print("interrupted", flush=True)
+        raise SystemExit(130) from None
+
+
+# --------------------------------------------------------------------------------------------------
+# Checkpoints and the exported expert policy
+# --------------------------------------------------------------------------------------------------
 def export_policy(agent: Agent, observer: Observer, args: Args, path: Path) -> None:
     """``path``: a torch.export program of ``PolicyStep`` with a batch dimension of any size, and its
     description (env, task, input and state shapes) as the extra file meta.json."""
@@ -964,7 +1063,7 @@ def export_policy(agent: Agent, observer: Observer, args: Args, path: Path) -> N
         "noise_z uniform (n,32,classes), noise_a uniform (discrete) / standard normal (continuous)",
     }
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.stem + ".tmp.pt2")  # torch.export wants the .pt2 suffix
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.pt2")  # torch.export wants the .pt2 suffix
     torch.export.save(program, tmp, extra_files={"meta.json": json.dumps(meta)})
     os.replace(tmp, path)
 
@@ -974,26 +1073,75 @@ def observer_fingerprint(observer: Observer) -> float:
     return float(sum(p.double().sum() for p in observer.parameters()))
 
 
+# Settings that may differ between the parts of one run (how long it runs, how it reports, where its files
+# are); every other setting defines the run, and --resume refuses a change to any of them.
+MAY_CHANGE = set(
+    "total_steps stop_at_criterion eval_every eval_episodes log_every save_every video_every device"
+    " torch_threads resume overwrite checkpoint checkpoint_dir vae_checkpoint exp_name eval_only drop".split()
+)
+# Settings an evaluation must share with the agent it loads (they shape its networks or inputs).
+EVAL_KEYS = ("task", "obs", "deter", "hidden", "units", "cnn_depth", "layers", "classes")
+
+
 def load_agent_checkpoint(path: Path, args: Args, fingerprint: float) -> dict:
-    """A Dreamer checkpoint for this env, observation kind and network size."""
+    """The Dreamer checkpoint at ``path``, checked against this command: same env, task, observation
+    kind and network widths, the frozen VAEs it was trained on (``--obs vae``), and (``--resume``) every
+    setting that defines the run."""
+    train = f"python dreamer_baseline.py --env {args.env} --obs {args.obs} --size {args.size}"
     if not path.is_file():
-        raise FileNotFoundError(
-            f"no agent checkpoint at {path}; train one with "
-            f"`python dreamer_baseline.py --env {args.env} --obs {args.obs} --size {args.size}`"
-        )
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+        raise UsageError(f"no agent checkpoint at {path}; train one with `{train}`")
+    ckpt = read_checkpoint(path, train)
     if ckpt.get("kind") != "dreamer":
-        raise ValueError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected a dreamer agent")
-    saved = ckpt["args"]
-    for key in ("env", "obs", "deter", "hidden", "units", "cnn_depth", "layers", "classes"):
-        if saved[key] != getattr(args, key):
-            raise ValueError(
-                f"{path} has {key}={saved[key]!r} but this run has {key}={getattr(args, key)!r}; "
-                f"give the flags it was trained with (size {saved['size']})"
-            )
+        raise UsageError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected a dreamer agent")
+    if ckpt.get("env") != args.env:
+        raise UsageError(f"{path} is an agent for env {ckpt.get('env')!r}, but --env is {args.env!r}")
+    saved, now = ckpt["args"], asdict(args)
+    if args.env == "simple_shapes":
+        now["task"] = saved.get("task", now["task"])  # Simple Shapes has no task
+    changed = setting_changes(saved, now, EVAL_KEYS)
+    if changed:
+        raise UsageError(
+            f"{path} was trained with {' '.join(changed)} (size {saved['size']}); pass {' '.join(changed)}"
+        )
     if abs(ckpt["observer_fingerprint"] - fingerprint) > 1e-6 * max(1.0, abs(fingerprint)):
-        raise ValueError(f"{path} was trained on other VAE weights ({ckpt['vae_checkpoint']})")
+        raise UsageError(f"{path} was trained on other VAE weights ({ckpt['vae_checkpoint']})")
+    changed = setting_changes(saved, now, [k for k in now if k not in MAY_CHANGE]) if args.resume else []
+    if changed:
+        raise UsageError(
+            f"{path} was made with {' '.join(changed)}, which differ from this command: give the same "
+            "settings to continue that run, or start a separate one (another --exp-name or --seed)"
+        )
     return ckpt
+
+
+def check_settings(args: Args) -> None:
+    """Every numeric flag in range, and flags that only make sense together, before anything runs."""
+    at_least_1 = "total_steps num_envs batch_size imag_horizon eval_every eval_episodes log_every save_every"
+    at_least_1 += " smoothing deter hidden units cnn_depth layers classes"
+    for flag in at_least_1.split():
+        require(getattr(args, flag) >= 1, flag, getattr(args, flag), "must be at least 1")
+    require(args.batch_length >= 2, "batch_length", args.batch_length, "must be at least 2")
+    for flag in "learning_starts video_every entropy_coef kl_free kl_dyn kl_rep".split():
+        require(getattr(args, flag) >= 0, flag, getattr(args, flag), "must not be negative")
+    for flag in ("train_ratio", "wm_lr", "ac_lr"):
+        require(getattr(args, flag) > 0, flag, getattr(args, flag), "must be positive")
+    require(0 < args.gamma <= 1, "gamma", args.gamma, "must be in (0, 1]")
+    for flag in ("lam", "unimix", "slow_critic_decay", "return_norm_decay"):
+        require(0 <= getattr(args, flag) <= 1, flag, getattr(args, flag), "must be in [0, 1]")
+    need = args.batch_length * args.num_envs
+    rule = f"must hold a replayed sequence (--batch-length entries) per environment: at least {need}"
+    require(args.buffer_size >= need, "buffer_size", args.buffer_size, rule)
+    rule = f"must be at least one agent step ({ACTION_REPEAT['robodesk']} frames)"
+    require(args.episode_length >= ACTION_REPEAT["robodesk"], "episode_length", args.episode_length, rule)
+    require(args.drop == "none" or args.eval_only, "drop", args.drop, "is for evaluation: add --eval-only")
+    for other in ("overwrite", "eval_only"):
+        if args.resume and getattr(args, other):
+            raise UsageError(f"--resume continues a run; it cannot go with --{other.replace('_', '-')}")
+    if args.env == "robodesk":
+        from envs.robodesk import TASKS
+
+        if args.task not in TASKS:
+            raise UsageError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
 
 
 def count_flops(fn):
@@ -1004,12 +1152,11 @@ def count_flops(fn):
 
 
 def updates_due(env_steps: int, args: Args) -> int:
-    """Training updates owed after ``env_steps`` environment steps. The table's train ratio 32 is
-    DreamerV3's (replayed steps per environment step): a batch of 16 x 65 = 1,040 replayed steps per
-    update gives one update per 32.5 environment steps."""
-    return int(
-        max(env_steps - args.learning_starts, 0) * args.train_ratio / (args.batch_size * args.batch_length)
-    )
+    """Training updates owed after ``env_steps`` environment steps (the paper's unit: frames on
+    RoboDesk). The table's train ratio 32 is DreamerV3's (replayed steps per agent step): a batch of
+    16 x 65 = 1,040 replayed steps per update gives one update per 32.5 agent steps."""
+    agent_steps = max(env_steps - args.learning_starts, 0) / ACTION_REPEAT[args.env]
+    return int(agent_steps * args.train_ratio / (args.batch_size * args.batch_length))
 
 
 def train_update(agent: Agent, opts: dict, replay: Replay, args: Args, state: dict, dev) -> dict:
@@ -1080,18 +1227,29 @@ def load_observer(args: Args) -> tuple[Observer, str | None]:
 # --------------------------------------------------------------------------------------------------
 # Training loop
 # --------------------------------------------------------------------------------------------------
+def evaluate_checkpoint(agent: Agent, observer: Observer, args: Args, ref) -> dict:
+    """--eval-only: the modality ablation of a trained agent (paper section "Modality Ablation
+    Robustness"): --eval-episodes fresh episodes with --drop removed (its input zeroed)."""
+    rets, succ = run_episodes(agent, observer, args, args.eval_episodes, args.drop, seed=args.seed + 10**6)
+    sem = rets.std(ddof=1) / math.sqrt(len(rets)) if len(rets) > 1 else 0.0
+    out = {"drop": args.drop, "return_mean": float(rets.mean()), "return_sem": float(sem)}
+    line = f"[eval] drop={args.drop}: return {rets.mean():.2f} ± {sem:.2f} (s.e.m., {len(rets)} episodes)"
+    if ref:
+        out["normalised_return"] = (out["return_mean"] - ref[0]) / (ref[1] - ref[0])
+        line += f", normalised {out['normalised_return']:.3f}"
+    if args.env == "robodesk":
+        out["success_count"] = float(succ.mean())
+        line += f", success count {succ.mean():.1f} ± {succ.std(ddof=1) / math.sqrt(len(succ)):.1f}"
+    print(line)
+    return out
+
+
 def main(args: Args) -> dict:
     args.resolve()
+    check_settings(args)
     if args.torch_threads:
         torch.set_num_threads(args.torch_threads)
     dev = torch.device(args.device)
-    if args.env == "robodesk":
-        from envs.robodesk import TASKS
-
-        if args.task not in TASKS:
-            raise ValueError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
-    if args.batch_length < 2:
-        raise ValueError(f"--batch-length must be at least 2, got {args.batch_length}")
     observer, vae_path = load_observer(args)
     observer = observer.to(dev)
     spaces = observer.spaces(args.env)
@@ -1100,6 +1258,7 @@ def main(args: Args) -> dict:
     ck_root = Path(args.checkpoint_dir) / args.env
     agent_path = Path(args.checkpoint) if args.checkpoint else ck_root / "agents" / f"{run_name}.pt"
     policy_path = agent_path.with_suffix(".policy.pt2")
+    runs_dir = Path("runs") / run_name
     fingerprint = observer_fingerprint(observer)
 
     random.seed(args.seed)
@@ -1113,23 +1272,13 @@ def main(args: Args) -> dict:
         return (ret - ref[0]) / (ref[1] - ref[0]) if ref else float("nan")
 
     if args.eval_only:
-        ck = load_agent_checkpoint(agent_path, args, fingerprint)
-        agent.load_state_dict(ck["agent"])
-        rets, succ = run_episodes(
-            agent, observer, args, args.eval_episodes, args.drop, seed=args.seed + 10**6
-        )
-        sem = rets.std(ddof=1) / math.sqrt(len(rets)) if len(rets) > 1 else 0.0
-        out = {"drop": args.drop, "return_mean": float(rets.mean()), "return_sem": float(sem)}
-        line = f"[eval] drop={args.drop}: return {rets.mean():.2f} ± {sem:.2f} (s.e.m., {len(rets)} episodes)"
-        if ref:
-            out["normalised_return"] = normalise(float(rets.mean()))
-            line += f", normalised {out['normalised_return']:.3f}"
-        if args.env == "robodesk":
-            out["success_count"] = float(succ.mean())
-            line += f", success count {succ.mean():.1f} ± {succ.std(ddof=1) / math.sqrt(len(succ)):.1f}"
-        print(line)
-        return out
+        agent.load_state_dict(load_agent_checkpoint(agent_path, args, fingerprint)["agent"])
+        return evaluate_checkpoint(agent, observer, args, ref)
 
+    # Nothing of an earlier run is overwritten by accident, and the output folders take files now.
+    claim_outputs([agent_path, policy_path, runs_dir], args.resume, args.overwrite)
+    ensure_writable(agent_path.parent)
+    ensure_writable(runs_dir)
     opts = make_optimizers(agent, args)
     n_actions = agent.n_actions
     replay = Replay(args.buffer_size, args.num_envs, spaces, n_actions, args.seed)
@@ -1157,7 +1306,7 @@ def main(args: Args) -> dict:
         np.random.set_state(ck["np_rng"])
         print(f"[dreamer] resuming {agent_path} at env step {state['env_steps']:,}")
 
-    writer = SummaryWriter(f"runs/{run_name}")
+    writer = SummaryWriter(str(runs_dir))
     if not args.resume:
         writer.add_text(
             "hyperparameters",
@@ -1257,7 +1406,7 @@ def main(args: Args) -> dict:
         done = term | trunc
         ep_ret += r
         ep_succ += step_success(info, ne)
-        state["env_steps"] += ne
+        state["env_steps"] += ne * ACTION_REPEAT[args.env]  # the paper's unit: simulator frames on RoboDesk
         prev_a, reward, terminal, first = a, r.astype(np.float64), term.astype(np.float64), np.zeros(ne)
         if done.any():
             # The final observation is its own entry; the reset observation starts the next episode.
@@ -1288,7 +1437,7 @@ def main(args: Args) -> dict:
             state["flops"] += state["flops_per_update"]
 
         step = state["env_steps"]
-        if step % args.log_every < ne and last_log:
+        if step % args.log_every < ne * ACTION_REPEAT[args.env] and last_log:
             sps = (step - steps0) / max(time.time() - t0, 1e-9)
             for k, v in last_log.items():
                 writer.add_scalar(f"losses/{k}", v, step)
@@ -1332,13 +1481,19 @@ def main(args: Args) -> dict:
             )
             raise SystemExit(130)  # the shell's code for a run ended by Ctrl-C
 
+    # The trained agent is saved before the final evaluation, so Ctrl-C there loses nothing.
+    save()
     stop.restore()
     envs_.close()
-    rets, succ = run_episodes(agent, observer, args, args.eval_episodes, "none", seed=10**6 + 1)
-    strip = dream_filmstrip(agent, observer, args, 16, seed=10**6)
+    try:
+        rets, succ = run_episodes(agent, observer, args, args.eval_episodes, "none", seed=10**6 + 1)
+        strip = dream_filmstrip(agent, observer, args, 16, seed=10**6)
+    except KeyboardInterrupt:
+        writer.close()
+        print(f"[dreamer] interrupted in the final evaluation; the agent is saved at {agent_path}")
+        raise SystemExit(130) from None
     if strip is not None:
         writer.add_image("dreams/real_top_imagined_bottom", strip, state["env_steps"], dataformats="HWC")
-    save()
     writer.close()
     result = {
         "env_steps": state["env_steps"],
@@ -1357,4 +1512,4 @@ def main(args: Args) -> dict:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    cli(main, Args)

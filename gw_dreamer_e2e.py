@@ -21,7 +21,9 @@ import copy
 import math
 import os
 import random
+import shutil
 import signal
+import sys
 import threading
 import time
 from dataclasses import asdict, dataclass
@@ -165,6 +167,9 @@ class Args:
     """environment steps between resumable checkpoints"""
     resume: bool = False
     """continue the run stored at --checkpoint (default: this run's agent checkpoint)"""
+    overwrite: bool = False
+    """replace an earlier run of the same name (its agent checkpoint and runs/ folder); without it a run
+    whose files exist stops at start"""
     checkpoint: str | None = None
     """agent checkpoint (default <checkpoint_dir>/<env>/agents/<run name>.pt)"""
     eval_only: bool = False
@@ -177,7 +182,7 @@ class Args:
         ss = self.env == "simple_shapes"
         if self.cpu_preset:
             if not ss:
-                raise ValueError("--cpu-preset is for Simple Shapes; RoboDesk at paper scale needs a GPU")
+                raise UsageError("--cpu-preset is for Simple Shapes; RoboDesk at paper scale needs a GPU")
             plain = Args(env=self.env)
             for name, value in CPU_PRESET.items():
                 if getattr(self, name) == getattr(plain, name):  # flags given explicitly win
@@ -358,12 +363,12 @@ def gw_lr(update: int, args: Args) -> float:
 def load_pretrained(path: Path, kind: str, env: str, stage: str) -> dict:
     make = PRETRAIN.format(env=env) + f" --stages {stage}"
     if not path.is_file():
-        raise FileNotFoundError(f"no {kind} checkpoint at {path}; make it with `{make}`")
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+        raise UsageError(f"no {kind} checkpoint at {path}; make it with `{make}`")
+    ckpt = read_checkpoint(path, make)
     if ckpt.get("kind") != kind:
-        raise ValueError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected {kind!r}")
+        raise UsageError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected {kind!r}")
     if ckpt.get("env") != env:
-        raise ValueError(
+        raise UsageError(
             f"{path} was made for env {ckpt.get('env')!r}, but this run is for env {env!r}; "
             f"make a matching one with `{make}`"
         )
@@ -408,7 +413,7 @@ def load_vaes(env: str, vae_path: Path) -> FrozenVAEs:
     try:
         return FrozenVAEs(env, vae)
     except RuntimeError as err:  # a state dict of other sizes
-        raise ValueError(f"{vae_path} does not fit the {env} networks: {err}") from err
+        raise UsageError(f"{vae_path} does not fit the {env} networks: {err}") from err
 
 
 FUSION = {"none": (0.5, 0.5), "vision": (0.0, 1.0), "attr": (1.0, 0.0)}  # (alpha_v, alpha_attr)
@@ -736,7 +741,7 @@ def make_envs(args: Args, num_envs: int):
     from envs.robodesk import TASKS
 
     if args.task not in TASKS:
-        raise ValueError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
+        raise UsageError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
     fns = [
         lambda: gym.make(
             "RoboDesk-v0",
@@ -854,20 +859,84 @@ def dream_filmstrip(agent: Agent, vaes: FrozenVAEs, args: Args, steps: int, seed
 
 
 # --------------------------------------------------------------------------------------------------
-# Checkpoints
+# Safe runs: a new run never overwrites an earlier one, a resumed run is the same run, checkpoints are
+# written atomically, and bad settings or unreadable files stop the run at once with one line
 # --------------------------------------------------------------------------------------------------
+class UsageError(ValueError):
+    """A mistake in the command line or in the files it names: the CLI prints the message and exits 2."""
+
+
+def require(ok: bool, flag: str, value, rule: str) -> None:
+    if not ok:
+        raise UsageError(f"--{flag.replace('_', '-')} {value}: {rule}")
+
+
 def atomic_save(obj: dict, path: Path) -> None:
-    """Write to a temporary file then rename: an interruption never leaves a torn checkpoint."""
+    """Write to a temporary file of this process, then rename it over ``path``: an interruption (even
+    kill -9) leaves the previous file whole, and two processes never share a temporary file."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            torch.save(obj, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def read_checkpoint(path: Path, remake: str) -> dict:
+    """``torch.load``, or a message that names the file and the command that makes it again."""
+    try:
+        return torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as err:  # a truncated zip, a text file, a pickle of something else: many types
+        brief = " ".join(str(err).split())[:200]  # one line
+        raise UsageError(
+            f"cannot read {path} ({type(err).__name__}: {brief}); the file is damaged or is no checkpoint: "
+            f"make it again with `{remake}`"
+        ) from err
+
+
+def ensure_writable(folder: Path) -> None:
+    """Create ``folder`` and write a file in it now, rather than fail at the first save."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        probe = folder / f".write_test.{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as err:
+        raise UsageError(f"cannot write to {folder}: {err.strerror or err}") from err
+
+
+def claim_outputs(paths: list[Path], resume: bool, overwrite: bool) -> None:
+    """A new run stops before it would overwrite an earlier run's checkpoint or mix its TensorBoard
+    events with that run's; --overwrite removes them on purpose, --resume continues the run they hold."""
+    existing = [p for p in paths if p.exists()]
+    if resume or not existing:
+        return
+    if not overwrite:
+        raise UsageError(
+            f"{' and '.join(map(str, existing))} already exist from an earlier run: add --resume to continue "
+            "it, change --exp-name or --seed to start a separate one, or add --overwrite to replace it"
+        )
+    for p in existing:
+        shutil.rmtree(p) if p.is_dir() else p.unlink()
+
+
+def setting_changes(saved: dict, now: dict, keys) -> list[str]:
+    """``--flag value`` of each setting in ``keys`` whose saved value differs from this command's."""
+    out = []
+    for k in (k for k in keys if k in saved and saved[k] != now[k]):
+        value = " ".join(map(str, saved[k])) if isinstance(saved[k], (list, tuple)) else saved[k]
+        out.append(f"--{k.replace('_', '-')} {value}")
+    return out
 
 
 class StopRequest:
-    """Ctrl-C (SIGINT) or SIGTERM during training asks the loop to finish its env step and the updates
-    owed, save the agent and exit, so an interrupted run loses nothing and ``--resume`` continues it (a
-    save made inside an update would pair half-stepped optimisers). A second signal stops at once."""
+    """Ctrl-C (SIGINT) or SIGTERM asks the run to finish what it is doing, save and exit with code 130,
+    so an interrupted run loses nothing and ``--resume`` continues it (a save made in the middle of an
+    update would pair half-stepped optimisers). A second signal stops at once."""
 
     def __init__(self, tag: str):
         self.tag, self.requested, self.previous = tag, False, {}
@@ -884,28 +953,107 @@ class StopRequest:
     def restore(self) -> None:
         for s, handler in self.previous.items():
             signal.signal(s, handler)
+        self.previous = {}
+
+    def __enter__(self) -> StopRequest:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.restore()
 
 
+def cli(main, args_type) -> None:
+    """Run ``main`` on the parsed command line; a UsageError is printed as one line (exit code 2), and
+    Ctrl-C outside the places that save prints one line too (exit code 130)."""
+    try:
+        main(tyro.cli(args_type))
+    except UsageError as err:
+        print(f"error: {err}", file=sys.stderr, flush=True)
+        raise SystemExit(2) from None
+    except KeyboardInterrupt:
+        print("interrupted", flush=True)
+        raise SystemExit(130) from None
+
+
+# --------------------------------------------------------------------------------------------------
+# Checkpoints
+# --------------------------------------------------------------------------------------------------
 def vae_fingerprint(vaes: FrozenVAEs) -> float:
     """A number that changes with the frozen weights: a resumed or evaluated agent must use the VAEs it
     was trained on (its GW is part of the agent checkpoint)."""
     return float(sum(p.double().sum() for p in vaes.parameters()))
 
 
-def load_agent_checkpoint(path: Path, env: str, fingerprint: float) -> dict:
-    """An agent checkpoint of ``env`` trained on the frozen VAEs whose fingerprint is given."""
+# Settings that may differ between the parts of one run (how long it runs, how it reports, where its files
+# are); every other setting defines the run, and --resume refuses a change to any of them.
+MAY_CHANGE = set(
+    "total_steps stop_at_criterion eval_every eval_episodes log_every save_every video_every device"
+    " torch_threads resume overwrite checkpoint checkpoint_dir vae_checkpoint exp_name"
+    " eval_only drop".split()
+)
+# Settings an evaluation must share with the agent it loads (they shape its networks or inputs).
+EVAL_KEYS = ("task", "reward_loss", "loss_preset")
+
+
+def load_agent_checkpoint(path: Path, args: Args, fingerprint: float) -> dict:
+    """The agent checkpoint at ``path``, checked against this command: same env and task, the frozen
+    VAEs it was trained on, and (``--resume``) every setting that defines the run."""
+    train = f"python gw_dreamer_e2e.py --env {args.env}"
     if not path.is_file():
-        raise FileNotFoundError(
-            f"no agent checkpoint at {path}; train one with `python gw_dreamer_e2e.py --env {env}`"
-        )
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+        raise UsageError(f"no agent checkpoint at {path}; train one with `{train}`")
+    ckpt = read_checkpoint(path, train)
     if ckpt.get("kind") != "gw_dreamer_e2e":
-        raise ValueError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected a gw_dreamer_e2e agent")
-    if ckpt.get("env") != env:
-        raise ValueError(f"{path} is an agent for env {ckpt.get('env')!r}, but --env is {env!r}")
+        raise UsageError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected a gw_dreamer_e2e agent")
+    if ckpt.get("env") != args.env:
+        raise UsageError(f"{path} is an agent for env {ckpt.get('env')!r}, but --env is {args.env!r}")
     if abs(ckpt["vae_fingerprint"] - fingerprint) > 1e-6 * max(1.0, abs(fingerprint)):
-        raise ValueError(f"{path} was trained on other VAE weights ({ckpt['vae_checkpoint']})")
+        raise UsageError(f"{path} was trained on other VAE weights ({ckpt['vae_checkpoint']})")
+    saved, now = ckpt["args"], asdict(args)
+    if args.env == "simple_shapes":
+        now["task"] = saved.get("task", now["task"])  # Simple Shapes has no task
+    changed = setting_changes(saved, now, EVAL_KEYS)
+    if changed:
+        raise UsageError(f"{path} was trained with {' '.join(changed)}; pass {' '.join(changed)}")
+    changed = setting_changes(saved, now, [k for k in now if k not in MAY_CHANGE]) if args.resume else []
+    if changed:
+        raise UsageError(
+            f"{path} was made with {' '.join(changed)}, which differ from this command: give the same "
+            "settings to continue that run, or start a separate one (another --exp-name or --seed)"
+        )
     return ckpt
+
+
+def check_settings(args: Args) -> None:
+    """Every numeric flag in range, and flags that only make sense together, before anything runs."""
+    at_least_1 = "total_steps num_envs batch_size batch_length imag_horizon eval_every eval_episodes"
+    at_least_1 += " log_every save_every smoothing"
+    for flag in at_least_1.split():
+        require(getattr(args, flag) >= 1, flag, getattr(args, flag), "must be at least 1")
+    for flag in "learning_starts video_every entropy_coef wm_z_coef wm_reward_coef wm_done_coef".split():
+        require(getattr(args, flag) >= 0, flag, getattr(args, flag), "must not be negative")
+    require(args.gw_updates >= 0, "gw_updates", args.gw_updates, "must not be negative")
+    require(
+        args.gw_batch_size >= 2, "gw_batch_size", args.gw_batch_size, "must be at least 2 (it pairs samples)"
+    )
+    for flag in ("train_ratio", "wm_lr", "ac_lr", "gw_cycle"):
+        require(getattr(args, flag) > 0, flag, getattr(args, flag), "must be positive")
+    require(0 < args.gamma <= 1, "gamma", args.gamma, "must be in (0, 1]")
+    for flag in ("lam", "slow_critic_decay", "return_norm_decay"):
+        require(0 <= getattr(args, flag) <= 1, flag, getattr(args, flag), "must be in [0, 1]")
+    need = (args.batch_length + 1) * args.num_envs
+    rule = f"must hold a replayed sequence (--batch-length + 1 entries) per environment: at least {need}"
+    require(args.buffer_size >= need, "buffer_size", args.buffer_size, rule)
+    rule = f"must be at least one agent step ({ACTION_REPEAT['robodesk']} frames)"
+    require(args.episode_length >= ACTION_REPEAT["robodesk"], "episode_length", args.episode_length, rule)
+    require(args.drop == "none" or args.eval_only, "drop", args.drop, "is for evaluation: add --eval-only")
+    for other in ("overwrite", "eval_only"):
+        if args.resume and getattr(args, other):
+            raise UsageError(f"--resume continues a run; it cannot go with --{other.replace('_', '-')}")
+    if args.env == "robodesk":
+        from envs.robodesk import TASKS
+
+        if args.task not in TASKS:
+            raise UsageError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
 
 
 def count_flops(fn):
@@ -1016,23 +1164,37 @@ def make_optimizers(agent: Agent, args: Args) -> dict:
 # --------------------------------------------------------------------------------------------------
 # Training loop (Algorithm 1)
 # --------------------------------------------------------------------------------------------------
+def evaluate_checkpoint(agent: Agent, vaes: FrozenVAEs, args: Args, ref) -> dict:
+    """--eval-only: the modality ablation of a trained agent (paper section "Modality Ablation
+    Robustness"): --eval-episodes fresh episodes with --drop removed."""
+    rets, succ = run_episodes(agent, vaes, args, args.eval_episodes, args.drop, seed=args.seed + 10**6)
+    sem = rets.std(ddof=1) / math.sqrt(len(rets)) if len(rets) > 1 else 0.0
+    out = {"drop": args.drop, "return_mean": float(rets.mean()), "return_sem": float(sem)}
+    line = f"[eval] drop={args.drop}: return {rets.mean():.2f} ± {sem:.2f} (s.e.m., {len(rets)} episodes)"
+    if ref:
+        out["normalised_return"] = (out["return_mean"] - ref[0]) / (ref[1] - ref[0])
+        line += f", normalised {out['normalised_return']:.3f}"
+    if args.env == "robodesk":
+        out["success_count"] = float(succ.mean())
+        line += f", success count {succ.mean():.1f} ± {succ.std(ddof=1) / math.sqrt(len(succ)):.1f}"
+    print(line)
+    return out
+
+
 def main(args: Args) -> dict:
     args.resolve()
+    check_settings(args)
     if args.torch_threads:
         torch.set_num_threads(args.torch_threads)
     dev = torch.device(args.device)
     ck_root = Path(args.checkpoint_dir) / args.env
     vae_path = Path(args.vae_checkpoint) if args.vae_checkpoint else ck_root / "vae.pt"
-    if args.env == "robodesk":
-        from envs.robodesk import TASKS
-
-        if args.task not in TASKS:
-            raise ValueError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
     vaes = load_vaes(args.env, vae_path).to(dev)
     model_name = "gw" if args.loss_preset == "gw" else "clip"  # GW-Dreamer or CLIP-Dreamer, end to end
     task = "" if args.env == "simple_shapes" else f"_{args.task}"
     run_name = f"{args.exp_name}_{model_name}_{args.env}{task}_s{args.seed}"
     agent_path = Path(args.checkpoint) if args.checkpoint else ck_root / "agents" / f"{run_name}.pt"
+    runs_dir = Path("runs") / run_name
     fingerprint = vae_fingerprint(vaes)
 
     random.seed(args.seed)
@@ -1046,21 +1208,13 @@ def main(args: Args) -> dict:
         return (ret - ref[0]) / (ref[1] - ref[0]) if ref else float("nan")
 
     if args.eval_only:
-        ck = load_agent_checkpoint(agent_path, args.env, fingerprint)
-        agent.load_state_dict(ck["agent"])
-        rets, succ = run_episodes(agent, vaes, args, args.eval_episodes, args.drop, seed=args.seed + 10**6)
-        sem = rets.std(ddof=1) / math.sqrt(len(rets)) if len(rets) > 1 else 0.0
-        out = {"drop": args.drop, "return_mean": float(rets.mean()), "return_sem": float(sem)}
-        line = f"[eval] drop={args.drop}: return {rets.mean():.2f} ± {sem:.2f} (s.e.m., {len(rets)} episodes)"
-        if ref:
-            out["normalised_return"] = normalise(float(rets.mean()))
-            line += f", normalised {out['normalised_return']:.3f}"
-        if args.env == "robodesk":
-            out["success_count"] = float(succ.mean())
-            line += f", success count {succ.mean():.1f} ± {succ.std(ddof=1) / math.sqrt(len(succ)):.1f}"
-        print(line)
-        return out
+        agent.load_state_dict(load_agent_checkpoint(agent_path, args, fingerprint)["agent"])
+        return evaluate_checkpoint(agent, vaes, args, ref)
 
+    # Nothing of an earlier run is overwritten by accident, and the output folders take files now.
+    claim_outputs([agent_path, runs_dir], args.resume, args.overwrite)
+    ensure_writable(agent_path.parent)
+    ensure_writable(runs_dir)
     opts = make_optimizers(agent, args)
     action_dim = SIZES[args.env]["actions"]
     replay = Replay(args.buffer_size, args.num_envs, vaes.latent, action_dim, args.seed)
@@ -1079,7 +1233,7 @@ def main(args: Args) -> dict:
         "next_video": args.video_every or args.total_steps,
     }
     if args.resume:
-        ck = load_agent_checkpoint(agent_path, args.env, fingerprint)
+        ck = load_agent_checkpoint(agent_path, args, fingerprint)
         agent.load_state_dict(ck["agent"])
         for name, opt in opts.items():
             opt.load_state_dict(ck["opts"][name])
@@ -1090,7 +1244,7 @@ def main(args: Args) -> dict:
         np.random.set_state(ck["np_rng"])
         print(f"[gw_dreamer_e2e] resuming {agent_path} at env step {state['env_steps']:,}")
 
-    writer = SummaryWriter(f"runs/{run_name}")
+    writer = SummaryWriter(str(runs_dir))
     if not args.resume:
         writer.add_text(
             "hyperparameters",
@@ -1111,7 +1265,7 @@ def main(args: Args) -> dict:
             f"greedy policy {ref[1]:.1f} -> 1"
         )
 
-    def save(path: Path) -> None:
+    def save() -> None:
         atomic_save(
             {
                 "kind": "gw_dreamer_e2e",
@@ -1128,7 +1282,7 @@ def main(args: Args) -> dict:
                 "torch_rng": torch.get_rng_state(),
                 "np_rng": np.random.get_state(),
             },
-            path,
+            agent_path,
         )
 
     def log_episode(ret: float, success: float) -> None:
@@ -1251,9 +1405,9 @@ def main(args: Args) -> dict:
             writer.add_image("dreams/real_top_imagined_bottom", strip, step, dataformats="HWC")
         if step >= state["next_save"]:
             state["next_save"] += args.save_every
-            save(agent_path)
+            save()
         if stop.requested:
-            save(agent_path)
+            save()
             envs_.close()
             writer.close()
             stop.restore()
@@ -1264,12 +1418,18 @@ def main(args: Args) -> dict:
             )
             raise SystemExit(130)  # the shell's code for a run ended by Ctrl-C
 
+    # The trained agent is saved before the final evaluation, so Ctrl-C there loses nothing.
+    save()
     stop.restore()
     envs_.close()
-    rets, succ = run_episodes(agent, vaes, args, args.eval_episodes, "none", seed=10**6 + 1)
-    strip = dream_filmstrip(agent, vaes, args, 16, seed=10**6)
+    try:
+        rets, succ = run_episodes(agent, vaes, args, args.eval_episodes, "none", seed=10**6 + 1)
+        strip = dream_filmstrip(agent, vaes, args, 16, seed=10**6)
+    except KeyboardInterrupt:
+        writer.close()
+        print(f"[gw_dreamer_e2e] interrupted in the final evaluation; the agent is saved at {agent_path}")
+        raise SystemExit(130) from None
     writer.add_image("dreams/real_top_imagined_bottom", strip, state["env_steps"], dataformats="HWC")
-    save(agent_path)
     writer.close()
     wall = time.time() - t0
     result = {
@@ -1290,4 +1450,4 @@ def main(args: Args) -> dict:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    cli(main, Args)

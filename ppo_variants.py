@@ -22,6 +22,10 @@ from __future__ import annotations
 import math
 import os
 import random
+import shutil
+import signal
+import sys
+import threading
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -125,6 +129,9 @@ class Args:
     """episodes for --eval-only and the final evaluation"""
     save_every: int = 1
     """rollouts between resumable checkpoints"""
+    overwrite: bool = False
+    """replace an earlier run of the same name (its agent checkpoint and runs/ folder); without it a run
+    whose files exist stops at start"""
     resume: bool = False
     """continue the run stored at --checkpoint (default: this run's agent checkpoint)"""
     checkpoint: str | None = None
@@ -134,16 +141,12 @@ class Args:
     drop: Literal["none", "vision", "attr"] = "none"
     """modality removed at evaluation: clip/gw set alpha to (0, 1) / (1, 0), raw/vae zero the input"""
 
-    def check(self) -> Args:
-        if self.num_envs * self.num_steps < self.minibatch_size:
-            raise ValueError(
-                f"a rollout of {self.num_envs} x {self.num_steps} steps is smaller than one minibatch "
-                f"({self.minibatch_size})"
-            )
-        return self
-
 
 PRETRAIN = "python pretrain_vae_gw.py --env {env}"
+# Simulator frames per agent step. The paper counts RoboDesk "environment steps" in frames ("2,000
+# environment steps but with an action repetition of 4 steps, leading to 500 chosen actions"), so step
+# counts (--total-steps, criteria, logs) are frames there; Simple Shapes has no action repeat.
+ACTION_REPEAT = {"simple_shapes": 1, "robodesk": 4}
 ENV_SPECS = {  # must agree with pretrain_vae_gw.py (checked against the checkpoints)
     "simple_shapes": {"image": 32, "attr": 11, "latent": 10, "z": 10, "gw_hidden": 64},
     "robodesk": {"image": 64, "attr": 76, "latent": 40, "z": 76, "gw_hidden": 512},
@@ -234,12 +237,12 @@ class GlobalWorkspace(nn.Module):
 def load_pretrained(path: Path, kind: str, env: str, stage: str, extra: str = "") -> dict:
     make = PRETRAIN.format(env=env) + f" --stages {stage}{extra}"
     if not path.is_file():
-        raise FileNotFoundError(f"no {kind} checkpoint at {path}; make it with `{make}`")
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+        raise UsageError(f"no {kind} checkpoint at {path}; make it with `{make}`")
+    ckpt = read_checkpoint(path, make)
     if ckpt.get("kind") != kind:
-        raise ValueError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected {kind!r}")
+        raise UsageError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected {kind!r}")
     if ckpt.get("env") != env:
-        raise ValueError(
+        raise UsageError(
             f"{path} was made for env {ckpt.get('env')!r}, but this run is for env {env!r}; "
             f"make a matching one with `{make}`"
         )
@@ -304,7 +307,7 @@ def load_observer(args: Args) -> tuple[Observer, dict]:
         gw_path = Path(args.gw_checkpoint) if args.gw_checkpoint else ck_root / f"{args.variant}.pt"
         gw = load_pretrained(gw_path, "gw", args.env, "gw", f" --loss-preset {args.variant}")
         if gw.get("preset") != args.variant:
-            raise ValueError(
+            raise UsageError(
                 f"{gw_path} is a {gw.get('preset')!r} model but --variant is {args.variant!r}; make one with "
                 f"`{PRETRAIN.format(env=args.env)} --stages gw --loss-preset {args.variant}`"
             )
@@ -312,7 +315,7 @@ def load_observer(args: Args) -> tuple[Observer, dict]:
     try:
         obs = Observer(args.env, args.variant, vae, gw)
     except RuntimeError as err:  # a state dict of other sizes
-        raise ValueError(f"{', '.join(paths)} do not fit the {args.env} networks: {err}") from err
+        raise UsageError(f"{', '.join(paths)} do not fit the {args.env} networks: {err}") from err
     return obs, {"fingerprint": float(sum(p.double().sum() for p in obs.parameters())), "paths": paths}
 
 
@@ -419,6 +422,123 @@ class Agent(nn.Module):
 
 
 # --------------------------------------------------------------------------------------------------
+# Safe runs: a new run never overwrites an earlier one, a resumed run is the same run, checkpoints are
+# written atomically, and bad settings or unreadable files stop the run at once with one line
+# --------------------------------------------------------------------------------------------------
+class UsageError(ValueError):
+    """A mistake in the command line or in the files it names: the CLI prints the message and exits 2."""
+
+
+def require(ok: bool, flag: str, value, rule: str) -> None:
+    if not ok:
+        raise UsageError(f"--{flag.replace('_', '-')} {value}: {rule}")
+
+
+def atomic_save(obj: dict, path: Path) -> None:
+    """Write to a temporary file of this process, then rename it over ``path``: an interruption (even
+    kill -9) leaves the previous file whole, and two processes never share a temporary file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            torch.save(obj, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def read_checkpoint(path: Path, remake: str) -> dict:
+    """``torch.load``, or a message that names the file and the command that makes it again."""
+    try:
+        return torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as err:  # a truncated zip, a text file, a pickle of something else: many types
+        brief = " ".join(str(err).split())[:200]  # one line
+        raise UsageError(
+            f"cannot read {path} ({type(err).__name__}: {brief}); the file is damaged or is no checkpoint: "
+            f"make it again with `{remake}`"
+        ) from err
+
+
+def ensure_writable(folder: Path) -> None:
+    """Create ``folder`` and write a file in it now, rather than fail at the first save."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        probe = folder / f".write_test.{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as err:
+        raise UsageError(f"cannot write to {folder}: {err.strerror or err}") from err
+
+
+def claim_outputs(paths: list[Path], resume: bool, overwrite: bool) -> None:
+    """A new run stops before it would overwrite an earlier run's checkpoint or mix its TensorBoard
+    events with that run's; --overwrite removes them on purpose, --resume continues the run they hold."""
+    existing = [p for p in paths if p.exists()]
+    if resume or not existing:
+        return
+    if not overwrite:
+        raise UsageError(
+            f"{' and '.join(map(str, existing))} already exist from an earlier run: add --resume to continue "
+            "it, change --exp-name or --seed to start a separate one, or add --overwrite to replace it"
+        )
+    for p in existing:
+        shutil.rmtree(p) if p.is_dir() else p.unlink()
+
+
+def setting_changes(saved: dict, now: dict, keys) -> list[str]:
+    """``--flag value`` of each setting in ``keys`` whose saved value differs from this command's."""
+    out = []
+    for k in (k for k in keys if k in saved and saved[k] != now[k]):
+        value = " ".join(map(str, saved[k])) if isinstance(saved[k], (list, tuple)) else saved[k]
+        out.append(f"--{k.replace('_', '-')} {value}")
+    return out
+
+
+class StopRequest:
+    """Ctrl-C (SIGINT) or SIGTERM asks the run to finish what it is doing, save and exit with code 130,
+    so an interrupted run loses nothing and ``--resume`` continues it (a save made in the middle of an
+    update would pair half-stepped optimisers). A second signal stops at once."""
+
+    def __init__(self, tag: str):
+        self.tag, self.requested, self.previous = tag, False, {}
+        if threading.current_thread() is threading.main_thread():  # signal handlers live there only
+            self.previous = {s: signal.signal(s, self.handle) for s in (signal.SIGINT, signal.SIGTERM)}
+
+    def handle(self, signum, frame) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        name = signal.Signals(signum).name
+        print(f"[{self.tag}] {name}: saving after this step (send it again to stop at once)", flush=True)
+
+    def restore(self) -> None:
+        for s, handler in self.previous.items():
+            signal.signal(s, handler)
+        self.previous = {}
+
+    def __enter__(self) -> StopRequest:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.restore()
+
+
+def cli(main, args_type) -> None:
+    """Run ``main`` on the parsed command line; a UsageError is printed as one line (exit code 2), and
+    Ctrl-C outside the places that save prints one line too (exit code 130)."""
+    try:
+        main(tyro.cli(args_type))
+    except UsageError as err:
+        print(f"error: {err}", file=sys.stderr, flush=True)
+        raise SystemExit(2) from None
+    except KeyboardInterrupt:
+        print("interrupted", flush=True)
+        raise SystemExit(130) from None
+
+
+# --------------------------------------------------------------------------------------------------
 # Environments, evaluation, checkpoints
 # --------------------------------------------------------------------------------------------------
 def make_envs(args: Args, num_envs: int):
@@ -430,12 +550,13 @@ def make_envs(args: Args, num_envs: int):
     from envs.robodesk import TASKS
 
     if args.task not in TASKS:
-        raise ValueError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
+        raise UsageError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
     fns = [
         lambda: gym.make(
             "RoboDesk-v0",
             task=args.task,
             render_quality=args.render_quality,
+            action_repeat=ACTION_REPEAT["robodesk"],
             episode_length=args.episode_length,
         )
         for _ in range(num_envs)
@@ -486,31 +607,69 @@ def evaluate(agent: Agent, observer: Observer, args: Args, n: int, drop: str, se
     return returns, successes
 
 
-def atomic_save(obj: dict, path: Path) -> None:
-    """Write to a temporary file then rename: an interruption never leaves a torn checkpoint."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+# Settings that may differ between the parts of one run (how long it runs, how it reports, where its files
+# are); every other setting defines the run, and --resume refuses a change to any of them.
+MAY_CHANGE = set(
+    "total_steps stop_at_criterion eval_episodes save_every device torch_threads resume overwrite"
+    " checkpoint checkpoint_dir vae_checkpoint gw_checkpoint exp_name eval_only drop".split()
+)
+# Settings an evaluation must share with the agent it loads (they shape its networks or inputs).
+EVAL_KEYS = ("task", "variant", "frame_stack", "hidden")
 
 
 def load_agent_checkpoint(path: Path, args: Args, frozen: dict) -> dict:
+    """The PPO checkpoint at ``path``, checked against this command: same env, task and variant, the
+    frozen weights it was trained on, and (``--resume``) every setting that defines the run."""
+    train = f"python ppo_variants.py --env {args.env} --variant {args.variant}"
     if not path.is_file():
-        raise FileNotFoundError(
-            f"no agent checkpoint at {path}; train one with "
-            f"`python ppo_variants.py --env {args.env} --variant {args.variant}`"
-        )
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+        raise UsageError(f"no agent checkpoint at {path}; train one with `{train}`")
+    ckpt = read_checkpoint(path, train)
     if ckpt.get("kind") != "ppo":
-        raise ValueError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected a ppo agent")
-    if (ckpt.get("env"), ckpt.get("variant")) != (args.env, args.variant):
-        raise ValueError(
-            f"{path} is a {ckpt.get('variant')!r} agent for env {ckpt.get('env')!r}, "
-            f"but this run is --variant {args.variant} --env {args.env}"
-        )
+        raise UsageError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected a ppo agent")
+    if ckpt.get("env") != args.env:
+        raise UsageError(f"{path} is an agent for env {ckpt.get('env')!r}, but --env is {args.env!r}")
+    saved, now = ckpt["args"], asdict(args)
+    if args.env == "simple_shapes":
+        now["task"] = saved.get("task", now["task"])  # Simple Shapes has no task
+    changed = setting_changes(saved, now, EVAL_KEYS)
+    if changed:
+        raise UsageError(f"{path} was trained with {' '.join(changed)}; pass {' '.join(changed)}")
     if abs(ckpt["fingerprint"] - frozen["fingerprint"]) > 1e-6 * max(1.0, abs(frozen["fingerprint"])):
-        raise ValueError(f"{path} was trained on other frozen weights ({', '.join(ckpt['frozen_paths'])})")
+        raise UsageError(f"{path} was trained on other frozen weights ({', '.join(ckpt['frozen_paths'])})")
+    changed = setting_changes(saved, now, [k for k in now if k not in MAY_CHANGE]) if args.resume else []
+    if changed:
+        raise UsageError(
+            f"{path} was made with {' '.join(changed)}, which differ from this command: give the same "
+            "settings to continue that run, or start a separate one (another --exp-name or --seed)"
+        )
     return ckpt
+
+
+def check_settings(args: Args) -> None:
+    """Every numeric flag in range, and flags that only make sense together, before anything runs."""
+    at_least_1 = "total_steps num_envs num_steps update_epochs minibatch_size frame_stack hidden"
+    for flag in (at_least_1 + " eval_episodes save_every smoothing").split():
+        require(getattr(args, flag) >= 1, flag, getattr(args, flag), "must be at least 1")
+    for flag in ("ent_coef", "vf_coef"):
+        require(getattr(args, flag) >= 0, flag, getattr(args, flag), "must not be negative")
+    for flag in ("learning_rate", "clip_coef", "max_grad_norm"):
+        require(getattr(args, flag) > 0, flag, getattr(args, flag), "must be positive")
+    require(0 < args.gamma <= 1, "gamma", args.gamma, "must be in (0, 1]")
+    require(0 <= args.gae_lambda <= 1, "gae_lambda", args.gae_lambda, "must be in [0, 1]")
+    rollout = args.num_envs * args.num_steps
+    rule = f"must fit in one rollout of --num-envs x --num-steps = {rollout:,} steps"
+    require(args.minibatch_size <= rollout, "minibatch_size", args.minibatch_size, rule)
+    rule = f"must be at least one agent step ({ACTION_REPEAT['robodesk']} frames)"
+    require(args.episode_length >= ACTION_REPEAT["robodesk"], "episode_length", args.episode_length, rule)
+    require(args.drop == "none" or args.eval_only, "drop", args.drop, "is for evaluation: add --eval-only")
+    for other in ("overwrite", "eval_only"):
+        if args.resume and getattr(args, other):
+            raise UsageError(f"--resume continues a run; it cannot go with --{other.replace('_', '-')}")
+    if args.env == "robodesk":
+        from envs.robodesk import TASKS
+
+        if args.task not in TASKS:
+            raise UsageError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
 
 
 def count_flops(fn):
@@ -588,21 +747,17 @@ def gae(rewards, values, next_value, terminated, args: Args) -> torch.Tensor:
 # Training loop (CleanRL ppo.py)
 # --------------------------------------------------------------------------------------------------
 def main(args: Args) -> dict:
-    args.check()
+    check_settings(args)
     if args.torch_threads:
         torch.set_num_threads(args.torch_threads)
     dev = torch.device(args.device)
-    if args.env == "robodesk":
-        from envs.robodesk import TASKS
-
-        if args.task not in TASKS:
-            raise ValueError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
     observer, frozen = load_observer(args)
     observer = observer.to(dev)
     task = "" if args.env == "simple_shapes" else f"_{args.task}"
     run_name = f"{args.exp_name}_{args.variant}_{args.env}{task}_s{args.seed}"
     ck_root = Path(args.checkpoint_dir) / args.env
     agent_path = Path(args.checkpoint) if args.checkpoint else ck_root / "agents" / f"{run_name}.pt"
+    runs_dir = Path("runs") / run_name
     discrete = args.env == "simple_shapes"
     n_actions = 7 if discrete else 5
 
@@ -630,9 +785,14 @@ def main(args: Args) -> dict:
         print(line)
         return out
 
+    # Nothing of an earlier run is overwritten by accident, and the output folders take files now.
+    claim_outputs([agent_path, runs_dir], args.resume, args.overwrite)
+    ensure_writable(agent_path.parent)
+    ensure_writable(runs_dir)
     optimizer = torch.optim.Adam(agent.parameters(), lr=args.learning_rate, eps=1e-5)
-    batch_size = args.num_envs * args.num_steps
-    num_iterations = max(args.total_steps // batch_size, 1)
+    batch_size = args.num_envs * args.num_steps  # agent steps per rollout
+    repeat = ACTION_REPEAT[args.env]  # env steps (the paper's unit, frames on RoboDesk) per agent step
+    num_iterations = max(args.total_steps // (batch_size * repeat), 1)
     state = {"iteration": 0, "env_steps": 0, "flops": 0, "flops_per_minibatch": 0, "recent": [],
              "criterion_step": None, "episodes": 0}  # fmt: skip
     reward_norm = RewardNormalizer(args.num_envs, args.gamma, args.norm_reward)
@@ -646,7 +806,7 @@ def main(args: Args) -> dict:
         np.random.set_state(ck["np_rng"])
         print(f"[ppo] resuming {agent_path} at env step {state['env_steps']:,}")
 
-    writer = SummaryWriter(f"runs/{run_name}")
+    writer = SummaryWriter(str(runs_dir))
     if not args.resume:
         writer.add_text(
             "hyperparameters",
@@ -716,6 +876,7 @@ def main(args: Args) -> dict:
     ep_ret, ep_succ = np.zeros(args.num_envs), np.zeros(args.num_envs)
     t0, steps0, stats = time.time(), state["env_steps"], {}
 
+    stop = StopRequest("ppo")  # Ctrl-C: the rollout and its update finish, then the run saves and exits
     while state["iteration"] < num_iterations:
         if args.stop_at_criterion and state["criterion_step"] is not None:
             break
@@ -730,7 +891,7 @@ def main(args: Args) -> dict:
                 action, logp, _, value = agent.get_action_and_value(x)
             actions[t], logprobs[t], values[t] = action, logp, value
             obs, r, term, trunc, info = envs_.step(env_action(action, discrete))
-            state["env_steps"] += args.num_envs
+            state["env_steps"] += args.num_envs * repeat
             ep_ret += r
             ep_succ += step_success(info, args.num_envs)
             r = torch.as_tensor(reward_norm(r, term | trunc), dtype=torch.float32, device=dev)
@@ -811,18 +972,35 @@ def main(args: Args) -> dict:
         writer.add_scalar("charts/train_flops", state["flops"], step)
         smooth = np.mean(state["recent"]) if state["recent"] else float("nan")
         print(
-            f"[ppo] step {step:,}/{num_iterations * batch_size:,} {sps:.0f} steps/s | "
+            f"[ppo] step {step:,}/{num_iterations * batch_size * repeat:,} {sps:.0f} steps/s | "
             f"value loss {stats['value_loss'].item():.3f} entropy {stats['entropy'].item():.3f} "
             f"smoothed normalised return {smooth:.3f}",
             flush=True,
         )
-        if state["iteration"] % args.save_every == 0:
+        if state["iteration"] % args.save_every == 0 or stop.requested:
             save()
+        if stop.requested:
+            envs_.close()
+            writer.close()
+            stop.restore()
+            print(
+                f"[ppo] interrupted at env step {step:,}: saved {agent_path}; "
+                "the same command with --resume continues the run",
+                flush=True,
+            )
+            raise SystemExit(130)  # the shell's code for a run ended by Ctrl-C
 
-    envs_.close()
-    rets, succ = evaluate(agent, observer, args, args.eval_episodes, "none", 10**6 + 1, dev)
-    writer.add_scalar("eval/episodic_return", rets.mean(), state["env_steps"])
+    # The trained agent is saved before the final evaluation, so Ctrl-C there loses nothing.
     save()
+    stop.restore()
+    envs_.close()
+    try:
+        rets, succ = evaluate(agent, observer, args, args.eval_episodes, "none", 10**6 + 1, dev)
+    except KeyboardInterrupt:
+        writer.close()
+        print(f"[ppo] interrupted in the final evaluation; the agent is saved at {agent_path}")
+        raise SystemExit(130) from None
+    writer.add_scalar("eval/episodic_return", rets.mean(), state["env_steps"])
     writer.close()
     result = {
         "env_steps": state["env_steps"],
@@ -840,4 +1018,4 @@ def main(args: Args) -> dict:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    cli(main, Args)

@@ -16,7 +16,9 @@ from __future__ import annotations
 import ctypes
 import json
 import os
+import signal
 import sys
+import threading
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -56,6 +58,9 @@ class Args:
     """paired observations are stored in <data_dir>/<env>/"""
     checkpoint_dir: str = "checkpoints"
     """checkpoints are written to <checkpoint_dir>/<env>/"""
+    overwrite: bool = False
+    """replace the checkpoints of the requested stages (vae.pt, gw.pt / clip.pt) and a stage left
+    unfinished with other settings; without it the run stops before it would overwrite them"""
     exp_name: str = "pretrain_vae_gw"
     """TensorBoard run name prefix (runs/<exp_name>_<env>_<stage>_<seed>_<time>)"""
     device: str = "cuda" if torch.cuda.is_available() else "cpu"
@@ -150,7 +155,7 @@ class Args:
     def resolve(self) -> Args:
         """The tables' defaults, then the CPU preset (if asked) for every flag left at its default."""
         if not 0.0 <= self.wide_share <= 1.0 or (self.wide_share and self.env != "simple_shapes"):
-            raise ValueError(
+            raise UsageError(
                 f"--wide-share is a share in [0, 1] for --env simple_shapes, got {self.wide_share}"
             )
         self.resolve_tables()
@@ -211,28 +216,250 @@ def env_dir(root: str, args: Args) -> Path:
     return Path(root) / args.env
 
 
+# --------------------------------------------------------------------------------------------------
+# Safe runs: nothing made earlier is overwritten or reused by accident, an interrupted stage continues
+# only with the settings it started with, checkpoints are written atomically, and bad settings or
+# unreadable files stop the run at once with one line
+# --------------------------------------------------------------------------------------------------
+class UsageError(ValueError):
+    """A mistake in the command line or in the files it names: the CLI prints the message and exits 2."""
+
+
+def require(ok: bool, flag: str, value, rule: str) -> None:
+    if not ok:
+        raise UsageError(f"--{flag.replace('_', '-')} {value}: {rule}")
+
+
 def atomic_save(obj: dict, path: Path) -> None:
-    """Write to a temporary file then rename, so an interruption never leaves a torn checkpoint."""
+    """Write to a temporary file of this process, then rename it over ``path``: an interruption (even
+    kill -9) leaves the previous file whole, and two processes never share a temporary file."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "wb") as f:
+            torch.save(obj, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def read_checkpoint(path: Path, remake: str) -> dict:
+    """``torch.load``, or a message that names the file and the command that makes it again."""
+    try:
+        return torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as err:  # a truncated zip, a text file, a pickle of something else: many types
+        brief = " ".join(str(err).split())[:200]  # one line
+        raise UsageError(
+            f"cannot read {path} ({type(err).__name__}: {brief}); the file is damaged or is no checkpoint: "
+            f"make it again with `{remake}`"
+        ) from err
+
+
+def ensure_writable(folder: Path) -> None:
+    """Create ``folder`` and write a file in it now, rather than fail at the first save."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        probe = folder / f".write_test.{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as err:
+        raise UsageError(f"cannot write to {folder}: {err.strerror or err}") from err
+
+
+def setting_changes(saved: dict, now: dict, keys) -> list[str]:
+    """``--flag value`` of each setting in ``keys`` whose saved value differs from this command's."""
+    out = []
+    for k in (k for k in keys if k in saved and saved[k] != now[k]):
+        value = " ".join(map(str, saved[k])) if isinstance(saved[k], (list, tuple)) else saved[k]
+        out.append(f"--{k.replace('_', '-')} {value}")
+    return out
+
+
+class StopRequest:
+    """Ctrl-C (SIGINT) or SIGTERM asks the run to finish what it is doing, save and exit with code 130,
+    so an interrupted run loses nothing and ``--resume`` continues it (a save made in the middle of an
+    update would pair half-stepped optimisers). A second signal stops at once."""
+
+    def __init__(self, tag: str):
+        self.tag, self.requested, self.previous = tag, False, {}
+        if threading.current_thread() is threading.main_thread():  # signal handlers live there only
+            self.previous = {s: signal.signal(s, self.handle) for s in (signal.SIGINT, signal.SIGTERM)}
+
+    def handle(self, signum, frame) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        name = signal.Signals(signum).name
+        print(f"[{self.tag}] {name}: saving after this step (send it again to stop at once)", flush=True)
+
+    def restore(self) -> None:
+        for s, handler in self.previous.items():
+            signal.signal(s, handler)
+        self.previous = {}
+
+    def __enter__(self) -> StopRequest:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.restore()
+
+
+def cli(main, args_type) -> None:
+    """Run ``main`` on the parsed command line; a UsageError is printed as one line (exit code 2), and
+    Ctrl-C outside the places that save prints one line too (exit code 130)."""
+    try:
+        main(tyro.cli(args_type))
+    except UsageError as err:
+        print(f"error: {err}", file=sys.stderr, flush=True)
+        raise SystemExit(2) from None
+    except KeyboardInterrupt:
+        print("interrupted", flush=True)
+        raise SystemExit(130) from None
 
 
 def load_checkpoint(path: Path, kind: str, env: str, make: str) -> dict:
     """Load a checkpoint and check that it is a ``kind`` checkpoint of ``env``; ``make`` is the command
     that produces it (named in the error)."""
     if not path.is_file():
-        raise FileNotFoundError(f"no {kind} checkpoint at {path}; make it with `{make}`")
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+        raise UsageError(f"no {kind} checkpoint at {path}; make it with `{make}`")
+    ckpt = read_checkpoint(path, make)
     if ckpt.get("kind") != kind:
-        raise ValueError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected {kind!r}")
+        raise UsageError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected {kind!r}")
     if ckpt.get("env") != env:
-        raise ValueError(
+        raise UsageError(
             f"{path} was made for env {ckpt.get('env')!r}, but this run is for env {env!r}; "
             f"make a matching one with `{make}`"
         )
     return ckpt
+
+
+# --------------------------------------------------------------------------------------------------
+# What defines the data and each stage, compared before anything made earlier is reused
+# --------------------------------------------------------------------------------------------------
+VAE_KEYS = tuple(
+    "n_samples seed vae_steps vae_batch_size vae_lr_v vae_lr_attr vae_lr_start_end vae_weight_decay beta_v"
+    " beta_attr attr_updates_per_step vae_width eval_size".split()
+)
+GW_KEYS = tuple(
+    "seed loss_preset gw_steps gw_batch_size gw_lr gw_lr_start_end gw_weight_decay fusion_temperature"
+    " contrastive_temperature".split()
+)
+
+
+def data_identity(args: Args) -> dict:
+    """The settings that decide which samples the collect stage draws (not how many: asking for more
+    appends shards). Written to <data_dir>/<env>/manifest.json."""
+    if args.env == "simple_shapes":
+        return {"env": args.env, "seed": args.seed, "wide_share": args.wide_share}
+    tasks = list(args.tasks) or [args.task]
+    frac = len(tasks) / (len(tasks) + 1) if args.expert_fraction is None else args.expert_fraction
+    out = {"env": args.env, "seed": args.seed, "tasks": tasks, "expert_fraction": frac}
+    out |= {"expert_noise": args.expert_noise, "render_quality": args.render_quality}
+    return out | {"expert_checkpoint": [str(p) for p in args.expert_checkpoint]}
+
+
+def stage_identity(args: Args, stage: str, vae_fingerprint: float | None = None) -> dict:
+    """The settings that define the vae or gw stage's result: its own flags, the data's, and (gw) the
+    weights of the VAEs it encodes with."""
+    keys = VAE_KEYS if stage == "vae" else GW_KEYS
+    out = {k: getattr(args, k) for k in keys} | data_identity(args)
+    return out | ({"vae_fingerprint": vae_fingerprint} if stage == "gw" else {})
+
+
+def check_data(folder: Path, args: Args) -> None:
+    """Data in ``folder`` must have been collected with this command's settings (its manifest)."""
+    if not shard_paths(folder):
+        return
+    manifest = folder / "manifest.json"
+    if not manifest.is_file():
+        raise UsageError(
+            f"{folder} holds data without a manifest.json, so the settings it was collected with are "
+            "unknown: collect into another --data-dir (or delete that folder)"
+        )
+    changed = setting_changes(json.loads(manifest.read_text()), data_identity(args), data_identity(args))
+    if changed:
+        raise UsageError(
+            f"{folder} holds data collected with {' '.join(changed)}: give the same settings to use it, "
+            "or collect into another --data-dir"
+        )
+
+
+def stage_is_done(path: Path, identity: dict, args: Args) -> bool:
+    """True if ``path`` was made by this stage with these settings (the stage is skipped); False if it is
+    absent (or --overwrite replaces it); an error if it was made otherwise, since agents trained on it
+    would no longer load once it changed."""
+    if not path.is_file() or args.overwrite:
+        return False
+    saved = read_checkpoint(path, f"python pretrain_vae_gw.py --env {args.env} --overwrite").get("identity")
+    if saved == identity:
+        print(f"[{path.stem}] {path} was made with these settings: stage skipped")
+        return True
+    changed = setting_changes(saved, identity, identity) if saved else ["(settings not recorded)"]
+    raise UsageError(
+        f"{path} already exists, made with {' '.join(changed)}: use it as it is (leave its stage out of "
+        "--stages), write to another --checkpoint-dir, or add --overwrite to replace it"
+    )
+
+
+def resume_partial(partial: Path, identity: dict, args: Args, stage: str) -> dict | None:
+    """The saved state of an unfinished stage made with these settings, or None to start the stage
+    (--overwrite discards an unfinished stage made with other settings)."""
+    if not partial.is_file():
+        return None
+    try:
+        ck = read_checkpoint(partial, "")
+    except UsageError as err:  # e.g. cut short by a full disk
+        if not args.overwrite:
+            reason = str(err).split("; ")[0]
+            raise UsageError(f"{reason}: add --overwrite to start the unfinished {stage} stage over") from err
+        ck = {}
+    changed = setting_changes(ck.get("identity", {}), identity, identity)
+    changed += [] if "identity" in ck else ["(settings not recorded)"]
+    if not changed:
+        print(f"[{stage}] continuing the unfinished stage in {partial} from step {ck['step']:,}")
+        return ck
+    if not args.overwrite:
+        raise UsageError(
+            f"{partial} is an unfinished {stage} stage made with {' '.join(changed)}: give the same "
+            "settings to continue it, or add --overwrite to start the stage over"
+        )
+    partial.unlink()
+    return None
+
+
+def check_settings(args: Args) -> None:
+    """Every numeric flag in range before anything runs."""
+    at_least_1 = "n_samples shard_size vae_steps attr_updates_per_step gw_steps log_every save_every"
+    for flag in (at_least_1 + " eval_size").split():
+        require(getattr(args, flag) >= 1, flag, getattr(args, flag), "must be at least 1")
+    for flag in ("vae_batch_size", "gw_batch_size"):  # batch norm and the contrastive loss pair samples
+        require(getattr(args, flag) >= 2, flag, getattr(args, flag), "must be at least 2")
+    positive = "vae_lr_v vae_lr_attr vae_lr_start_end gw_lr gw_lr_start_end fusion_temperature"
+    for flag in (positive + " contrastive_temperature").split():
+        require(getattr(args, flag) > 0, flag, getattr(args, flag), "must be positive")
+    for flag in "vae_weight_decay gw_weight_decay beta_v beta_attr expert_noise".split():
+        require(getattr(args, flag) >= 0, flag, getattr(args, flag), "must not be negative")
+    n_down = int(np.log2(ENV_SPECS[args.env]["image"])) - 1  # conv layers that halve the image
+    rule = f"must be a multiple of {2 ** (n_down - 1)} (the encoder halves it {n_down - 1} times)"
+    ok = args.vae_width > 0 and args.vae_width % 2 ** (n_down - 1) == 0
+    require(ok, "vae_width", args.vae_width, rule)
+    if args.env == "robodesk":
+        for t in tuple(args.tasks) or (args.task,):
+            from envs.robodesk import TASKS
+
+            if t not in TASKS:
+                raise UsageError(f"unknown RoboDesk task {t!r}; valid tasks: {', '.join(TASKS)}")
+
+
+def check_outputs(args: Args) -> None:
+    """Before any stage runs: the folders take files and the data on disk is the data asked for."""
+    if "collect" in args.stages:
+        ensure_writable(env_dir(args.data_dir, args))
+    if "vae" in args.stages or "gw" in args.stages:
+        ensure_writable(env_dir(args.checkpoint_dir, args))
+    check_data(env_dir(args.data_dir, args), args)
 
 
 class Progress:
@@ -297,7 +524,7 @@ def load_data(folder: Path, env: str) -> tuple[np.ndarray, np.ndarray]:
     """All shards of ``folder``, checked against the environment's shapes and dtypes."""
     paths = shard_paths(folder)
     if not paths:
-        raise FileNotFoundError(
+        raise UsageError(
             f"no data shards in {folder}; collect them with "
             f"`python pretrain_vae_gw.py --env {env} --stages collect`"
         )
@@ -307,16 +534,21 @@ def load_data(folder: Path, env: str) -> tuple[np.ndarray, np.ndarray]:
         with np.load(p) as d:
             img, attr = d["image"], d["attr"]
         if img.dtype != np.uint8 or img.shape[1:] != (spec["image"], spec["image"], 3):
-            raise ValueError(f"{p}: images {img.dtype} {img.shape[1:]} do not match env {env}")
+            raise UsageError(f"{p}: images {img.dtype} {img.shape[1:]} do not match env {env}")
         if attr.shape != (len(img), spec["attr"]) or not np.all(np.isfinite(attr)):
-            raise ValueError(f"{p}: attributes {attr.shape} (or non-finite values) do not match env {env}")
+            raise UsageError(f"{p}: attributes {attr.shape} (or non-finite values) do not match env {env}")
         images.append(img)
         attrs.append(attr)
     return np.concatenate(images), np.concatenate(attrs)
 
 
-def collect(args: Args) -> None:
+def collect(args: Args, stop: StopRequest) -> None:
     folder = env_dir(args.data_dir, args)
+    check_data(folder, args)
+    folder.mkdir(parents=True, exist_ok=True)
+    tmp = folder / f".manifest.{os.getpid()}.json"  # written before the first shard, atomically
+    tmp.write_text(json.dumps(data_identity(args), indent=1))
+    os.replace(tmp, folder / "manifest.json")
     have = 0
     for p in shard_paths(folder):
         with np.load(p) as d:  # reads only the attribute array, and closes the file
@@ -336,9 +568,11 @@ def collect(args: Args) -> None:
             write_shard(folder, d["image"], d["attr"], np.where(d["wide"], "random_wide", "random"), "")
             rng_seed, need, have = rng_seed + 1, need - n, have + n
             progress.show(have)
+            if stop.requested and need > 0:
+                interrupted(f"collect stage with {have:,} samples in {folder}")
         return
 
-    collect_robodesk(args, folder, need, have, rng_seed, progress)
+    collect_robodesk(args, folder, need, have, rng_seed, progress, stop)
 
 
 def robodesk_plan(args: Args, need: int, learned: tuple[str, ...] = ()) -> list[tuple[str, str, int]]:
@@ -351,12 +585,12 @@ def robodesk_plan(args: Args, need: int, learned: tuple[str, ...] = ()) -> list[
     tasks = tuple(args.tasks) or (args.task,)
     frac = len(tasks) / (len(tasks) + 1) if args.expert_fraction is None else args.expert_fraction
     if not 0.0 <= frac <= 1.0:
-        raise ValueError(f"--expert-fraction must be in [0, 1], got {frac}")
+        raise UsageError(f"--expert-fraction must be in [0, 1], got {frac}")
     for t in tasks:
         if t not in TASKS:
-            raise ValueError(f"unknown RoboDesk task {t!r}; valid tasks: {', '.join(TASKS)}")
+            raise UsageError(f"unknown RoboDesk task {t!r}; valid tasks: {', '.join(TASKS)}")
         if frac > 0 and t not in EXPERTS and t not in learned:
-            raise ValueError(
+            raise UsageError(
                 f"no scripted expert for {t!r}; experts exist for {', '.join(EXPERTS)} (or give its "
                 f"dreamer_baseline.py policy with --expert-checkpoint, or --expert-fraction 0 for random "
                 f"data only)"
@@ -378,12 +612,12 @@ class ExpertProgram:
             self.program = torch.export.load(path, extra_files=extra).module()
             self.meta = json.loads(extra["meta.json"])
         except Exception as err:  # not a torch.export archive, or one without the description
-            raise ValueError(
+            raise UsageError(
                 f"{path} is not a policy exported by dreamer_baseline.py ({type(err).__name__}: {err}); "
                 f"train one with `python dreamer_baseline.py --env robodesk --task TASK`"
             ) from err
         if self.meta.get("kind") != "dreamer_policy":
-            raise ValueError(f"{path} describes a {self.meta.get('kind')!r}, not a dreamer_policy")
+            raise UsageError(f"{path} describes a {self.meta.get('kind')!r}, not a dreamer_policy")
 
     def start(self, noise: float, seed: int) -> LearnedExpert:
         return LearnedExpert(self, noise, seed)
@@ -427,26 +661,28 @@ def load_expert_policies(paths: tuple[str, ...], expert_tasks: list[str]) -> dic
         if path.suffix == ".pt":  # the agent checkpoint: its exported policy sits beside it
             path = path.with_suffix(".policy.pt2")
         if not path.is_file():
-            raise FileNotFoundError(
+            raise UsageError(
                 f"no exported policy at {path}; `python dreamer_baseline.py --env robodesk --task TASK` "
                 f"writes <agent checkpoint>.policy.pt2 with every checkpoint"
             )
         program = ExpertProgram(path)
         env, task = program.meta.get("env"), program.meta.get("task")
         if env != "robodesk":
-            raise ValueError(f"{path} is a policy for env {env!r}; RoboDesk data needs a robodesk policy")
+            raise UsageError(f"{path} is a policy for env {env!r}; RoboDesk data needs a robodesk policy")
         if task not in expert_tasks:
-            raise ValueError(
+            raise UsageError(
                 f"{path} is an expert for {task!r}, which is not among the tasks collected "
                 f"({', '.join(expert_tasks) or 'none'}); add it with --tasks"
             )
         if task in out:
-            raise ValueError(f"two expert policies for {task!r}: {out[task].path} and {path}")
+            raise UsageError(f"two expert policies for {task!r}: {out[task].path} and {path}")
         out[task] = program
     return out
 
 
-def collect_robodesk(args: Args, folder: Path, need: int, have: int, seed: int, progress: Progress) -> None:
+def collect_robodesk(
+    args: Args, folder: Path, need: int, have: int, seed: int, progress: Progress, stop: StopRequest
+) -> None:
     """Full episodes of the scripted experts (with action noise) and of a uniformly random policy, in the
     proportions of ``robodesk_plan``, written as labelled shards."""
     from envs.robodesk import RoboDeskEnv
@@ -500,9 +736,12 @@ def collect_robodesk(args: Args, folder: Path, need: int, have: int, seed: int, 
                     action = policy.act(env) if policy is not None else rng.uniform(-1, 1, 5)
                 obs, _, term, trunc, _ = env.step(action)
                 done = term or trunc
-            flush(False)
+            flush(stop.requested)  # Ctrl-C: the samples so far go to a shard of their own
             # one line per episode (a 50k-sample shard is a quarter of an hour of RoboDesk on a CPU)
             progress.show(have + len(buf["attr"]), f"({source}, {task})")
+            if stop.requested:
+                env.close()
+                interrupted(f"collect stage with {have:,} samples in {folder}")
         env.close()
     flush(True)
 
@@ -665,7 +904,11 @@ def normaliser(attr: np.ndarray, env: str) -> tuple[np.ndarray, np.ndarray]:
     return attr.mean(0).astype(np.float32), (attr.std(0) + 1e-6).astype(np.float32)
 
 
-def train_vae(args: Args, writer: SummaryWriter) -> None:
+def train_vae(args: Args, writer: SummaryWriter, stop: StopRequest) -> None:
+    path = env_dir(args.checkpoint_dir, args) / "vae.pt"
+    identity = stage_identity(args, "vae")
+    if stage_is_done(path, identity, args):
+        return
     images, attrs = load_data(env_dir(args.data_dir, args), args.env)
     n_eval = min(args.eval_size, len(images) // 10)
     train_idx = np.arange(n_eval, len(images))
@@ -686,16 +929,20 @@ def train_vae(args: Args, writer: SummaryWriter) -> None:
             opts[1], args.vae_lr_attr, args.vae_lr_start_end, args.vae_steps * args.attr_updates_per_step
         ),
     ]
-    path = env_dir(args.checkpoint_dir, args) / "vae.pt"
     partial = path.with_suffix(".partial.pt")
     start = 0
-    if partial.is_file():  # resume after an interruption
-        ck = torch.load(partial, map_location=dev, weights_only=False)
+    ck = resume_partial(partial, identity, args, "vae")  # continue after an interruption
+    if ck:
         vae_v.load_state_dict(ck["vae_v"]), vae_attr.load_state_dict(ck["vae_attr"])
         for o, s, so, ss in zip(opts, scheds, ck["opts"], ck["scheds"], strict=True):
             o.load_state_dict(so), s.load_state_dict(ss)
         start = ck["step"]
-        print(f"[vae] resuming from step {start:,} ({partial})")
+
+    def save_partial(step: int) -> None:
+        state = {"opts": [o.state_dict() for o in opts], "scheds": [s.state_dict() for s in scheds]}
+        weights = {"vae_v": vae_v.state_dict(), "vae_attr": vae_attr.state_dict()}
+        atomic_save(weights | state | {"step": step, "identity": identity}, partial)
+
     rng = np.random.default_rng(args.seed + start)
     progress = Progress("vae", args.vae_steps, start)
     vae_v.train(), vae_attr.train()
@@ -716,17 +963,10 @@ def train_vae(args: Args, writer: SummaryWriter) -> None:
                 writer.add_scalar(f"losses/vae_{k}", v.item(), step)
             writer.add_scalar("charts/vae_lr_v", scheds[0].get_last_lr()[0], step)
             progress.show(step, f"recon_v {recon_v.item():.2f} recon_attr {recon_a.item():.3f}")
-        if step % args.save_every == 0 and step < args.vae_steps:
-            atomic_save(
-                {
-                    "vae_v": vae_v.state_dict(),
-                    "vae_attr": vae_attr.state_dict(),
-                    "step": step,
-                    "opts": [o.state_dict() for o in opts],
-                    "scheds": [s.state_dict() for s in scheds],
-                },
-                partial,
-            )
+        if (step % args.save_every == 0 or stop.requested) and step < args.vae_steps:
+            save_partial(step)
+        if stop.requested and step < args.vae_steps:
+            interrupted(f"vae stage at step {step:,}: saved {partial}")
     vae_v.eval(), vae_attr.eval()
     with torch.no_grad():
         ev = np.arange(n_eval)
@@ -743,6 +983,7 @@ def train_vae(args: Args, writer: SummaryWriter) -> None:
         {
             "kind": "vae",
             "env": args.env,
+            "identity": identity,
             "config": {"vae_width": args.vae_width, **ENV_SPECS[args.env]},
             "args": asdict(args),
             "vae_v": vae_v.state_dict(),
@@ -841,9 +1082,14 @@ def encode_unimodal(vae_v, vae_attr, images, attrs_n, device, batch: int = 1024)
     return torch.cat(u_v), torch.cat(u_a)
 
 
-def train_gw(args: Args, writer: SummaryWriter) -> None:
+def train_gw(args: Args, writer: SummaryWriter, stop: StopRequest) -> None:
     dev = torch.device(args.device)
     vae_v, vae_attr, vae_ckpt = load_vaes(env_dir(args.checkpoint_dir, args) / "vae.pt", args.env)
+    path = env_dir(args.checkpoint_dir, args) / f"{args.loss_preset}.pt"
+    fingerprint = float(sum(p.double().sum() for p in [*vae_v.parameters(), *vae_attr.parameters()]))
+    identity = stage_identity(args, "gw", fingerprint)
+    if stage_is_done(path, identity, args):
+        return
     vae_v.to(dev), vae_attr.to(dev)
     images, attrs = load_data(env_dir(args.data_dir, args), args.env)
     attrs_n = (attrs - vae_ckpt["attr_mean"]) / vae_ckpt["attr_std"]
@@ -856,14 +1102,12 @@ def train_gw(args: Args, writer: SummaryWriter) -> None:
     # fused: one kernel for all parameters (the GW's layers are small, per-tensor updates cost more)
     opt = torch.optim.AdamW(gw.parameters(), lr=args.gw_lr, weight_decay=args.gw_weight_decay, fused=True)
     sched = one_cycle(opt, args.gw_lr, args.gw_lr_start_end, args.gw_steps)
-    path = env_dir(args.checkpoint_dir, args) / f"{args.loss_preset}.pt"
     partial = path.with_suffix(".partial.pt")
     start = 0
-    if partial.is_file():
-        ck = torch.load(partial, map_location=dev, weights_only=False)
+    ck = resume_partial(partial, identity, args, "gw")  # continue after an interruption
+    if ck:
         gw.load_state_dict(ck["gw"]), opt.load_state_dict(ck["opt"]), sched.load_state_dict(ck["sched"])
         start = ck["step"]
-        print(f"[gw] resuming from step {start:,} ({partial})")
     gen = torch.Generator().manual_seed(args.seed + start)
     progress = Progress(args.loss_preset, args.gw_steps, start)
     n = len(u_v)
@@ -884,16 +1128,17 @@ def train_gw(args: Args, writer: SummaryWriter) -> None:
                 writer.add_scalar(f"losses/loss_{k}", v.item(), step)
             writer.add_scalar("charts/gw_lr", sched.get_last_lr()[0], step)
             progress.show(step, " ".join(f"{k} {v.item():.4f}" for k, v in terms.items()))
-        if step % args.save_every == 0 and step < args.gw_steps:
-            atomic_save(
-                {"gw": gw.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict(), "step": step},
-                partial,
-            )
+        if (step % args.save_every == 0 or stop.requested) and step < args.gw_steps:
+            state = {"gw": gw.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict()}
+            atomic_save(state | {"step": step, "identity": identity}, partial)
+        if stop.requested and step < args.gw_steps:
+            interrupted(f"{args.loss_preset} stage at step {step:,}: saved {partial}")
     gw.eval()
     figures = evaluate_gw(args, gw, vae_v, vae_attr, vae_ckpt, images, attrs, u_v, u_a, n_eval, writer)
     atomic_save(
         {
             "kind": "gw",
+            "identity": identity,
             "preset": args.loss_preset,
             "env": args.env,
             "config": {"betas": betas, **spec},
@@ -982,8 +1227,16 @@ def evaluate_gw(args, gw, vae_v, vae_attr, vae_ckpt, images, attrs, u_v, u_a, n_
 
 
 # --------------------------------------------------------------------------------------------------
-if __name__ == "__main__":
-    args = tyro.cli(Args).resolve()
+def interrupted(where: str) -> None:
+    """End the run after Ctrl-C once the work so far is on disk."""
+    print(f"[pretrain] interrupted in the {where}; the same command continues it", flush=True)
+    raise SystemExit(130)  # the shell's code for a run ended by Ctrl-C
+
+
+def main(args: Args) -> None:
+    args.resolve()
+    check_settings(args)
+    check_outputs(args)
     keep_freed_memory()
     if args.torch_threads:
         torch.set_num_threads(args.torch_threads)
@@ -996,11 +1249,16 @@ if __name__ == "__main__":
         "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in vars(args).items()),
     )
     t0 = time.time()
-    if "collect" in args.stages:
-        collect(args)
-    if "vae" in args.stages:
-        train_vae(args, writer)
-    if "gw" in args.stages:
-        train_gw(args, writer)
+    with StopRequest("pretrain") as stop:  # Ctrl-C: the stage saves what it has and the run exits 130
+        if "collect" in args.stages:
+            collect(args, stop)
+        if "vae" in args.stages:
+            train_vae(args, writer, stop)
+        if "gw" in args.stages:
+            train_gw(args, writer, stop)
     writer.close()
     print(f"done in {(time.time() - t0) / 60:.1f} min")
+
+
+if __name__ == "__main__":
+    cli(main, Args)

@@ -180,8 +180,10 @@ if __name__ == "__main__":
     a = tyro.cli(Args)
     args = G.Args(env="simple_shapes").resolve()
     encoder = G.load_encoder("simple_shapes", Path(a.vae_checkpoint), Path(a.gw_checkpoint))
-    ac_input = torch.load(a.checkpoint, map_location="cpu", weights_only=False)["args"].get("ac_input", "h")
-    ck = G.load_agent_checkpoint(Path(a.checkpoint), "simple_shapes", G.gw_fingerprint(encoder), ac_input)
+    saved = torch.load(a.checkpoint, map_location="cpu", weights_only=False)["args"]
+    ac_input = saved.get("ac_input", "h")
+    args.ac_input, args.reward_loss = ac_input, saved["reward_loss"]  # the agent's own network settings
+    ck = G.load_agent_checkpoint(Path(a.checkpoint), args, G.gw_fingerprint(encoder))
     agent = G.Agent("simple_shapes", encoder.z_dim, ck["args"]["reward_loss"], ac_input)
     agent.load_state_dict(ck["agent"])
     agent.eval()

@@ -23,13 +23,35 @@ TINY_PRETRAIN = [
 ]  # fmt: skip
 
 
-def run_script(script: str, cwd: Path, *args: str, timeout: int = 300) -> str:
-    """Run a top-level script through its CLI in ``cwd``; fail with its output if it fails."""
-    out = subprocess.run(
+def run_cli(script: str, cwd: Path, *args: str, timeout: int = 300) -> subprocess.CompletedProcess:
+    """Run a top-level script through its CLI in ``cwd`` and return what it did (exit code, output)."""
+    return subprocess.run(
         [sys.executable, str(ROOT / script), *args], cwd=cwd, capture_output=True, text=True, timeout=timeout
     )
+
+
+def run_script(script: str, cwd: Path, *args: str, timeout: int = 300) -> str:
+    """Run a top-level script through its CLI in ``cwd``; fail with its output if it fails."""
+    out = run_cli(script, cwd, *args, timeout=timeout)
     assert out.returncode == 0, out.stdout + out.stderr
     return out.stdout
+
+
+def interrupt_cli(script: str, cwd: Path, ready: str, *args: str) -> tuple[int, str]:
+    """Run a script through its CLI, press Ctrl-C (SIGINT) once it prints a line containing ``ready``,
+    and return (its exit code, its whole output)."""
+    proc = subprocess.Popen(
+        [sys.executable, str(ROOT / script), *args], cwd=cwd, stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    lines = []
+    for line in proc.stdout:
+        lines.append(line)
+        if ready in line:
+            proc.send_signal(signal.SIGINT)
+            break
+    rest, _ = proc.communicate(timeout=300)
+    return proc.returncode, "".join(lines) + rest
 
 
 def interrupt_run(script: str, cwd: Path, agent: Path, *args: str) -> tuple[dict, int]:
@@ -37,20 +59,9 @@ def interrupt_run(script: str, cwd: Path, agent: Path, *args: str) -> tuple[dict
     evaluation due, press Ctrl-C (SIGINT) once it prints its first training progress line, check that
     it exited 130 naming --resume, and return (the state saved in ``agent``, the step it reports)."""
     never = ["--log-every", "50", "--total-steps", "3000", "--save-every", "100000", "--eval-every", "100000"]
-    proc = subprocess.Popen(
-        [sys.executable, str(ROOT / script), *args, *never], cwd=cwd, stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT, text=True,
-    )  # fmt: skip
-    lines = []
-    for line in proc.stdout:
-        lines.append(line)
-        if "] step " in line and " updates " in line:  # training is under way
-            proc.send_signal(signal.SIGINT)
-            break
-    rest, _ = proc.communicate(timeout=300)
-    log = "".join(lines) + rest
+    code, log = interrupt_cli(script, cwd, " updates ", *args, *never)  # training is under way
     found = re.search(r"interrupted at env step ([\d,]+)", log)
-    assert found and proc.returncode == 130 and "--resume continues the run" in log, log
+    assert found and code == 130 and "--resume continues the run" in log, log
     step = int(found.group(1).replace(",", ""))
     state = torch.load(agent, weights_only=False)["state"]
     assert 100 < step < 3000 and state["env_steps"] == step

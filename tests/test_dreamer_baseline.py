@@ -100,7 +100,7 @@ def test_eval_only_with_each_drop_and_size_mismatch(ss_run, pretrained):
             small_args(pretrained, eval_only=True, checkpoint=str(agent), drop=drop, eval_episodes=2)
         )
         assert out["drop"] == drop and math.isfinite(out["normalised_return"])
-    with pytest.raises(ValueError, match="has deter=64 but this run has deter=512"):
+    with pytest.raises(D.UsageError, match="was trained with --deter 64 .*; pass --deter 64"):
         D.main(D.Args(eval_only=True, checkpoint=str(agent)))
 
 
@@ -144,11 +144,12 @@ def test_vae_dreamer_cli_run(pretrained):
 
 @pytest.fixture(scope="module")
 def rd_run(pretrained_robodesk):
-    """Dreamer (raw) on RoboDesk push_green, 60 steps of 10-step episodes; its policy is an expert."""
+    """Dreamer (raw) on RoboDesk push_green, 60 actions (240 frames, the step unit) of 10-action episodes;
+    its policy is an expert."""
     tmp = pretrained_robodesk[0]
     log = run_script(
-        "dreamer_baseline.py", tmp, *RD, "--checkpoint-dir", str(tmp / "ck"), *TINY, "--total-steps", "60",
-        "--learning-starts", "20", "--batch-size", "2", "--eval-episodes", "1", "--eval-every", "1000",
+        "dreamer_baseline.py", tmp, *RD, "--checkpoint-dir", str(tmp / "ck"), *TINY, "--total-steps", "240",
+        "--learning-starts", "80", "--batch-size", "2", "--eval-episodes", "1", "--eval-every", "1000",
         timeout=600,
     )  # fmt: skip
     return tmp, log, agent_path(tmp / "ck" / "robodesk", "dreamer_raw_12m_robodesk_push_green_s1")
@@ -158,10 +159,11 @@ def test_robodesk_cli_runs_for_both_observations(rd_run):
     tmp, log, agent = rd_run
     assert "Dreamer 12m with custom widths on robodesk_push_green" in log and "final_success_count" in log
     ck = torch.load(agent, weights_only=False)
-    assert ck["state"]["updates"] == (60 - 20) * 16 // 16 and ck["task"] == "push_green"
+    # one update per batch_size x batch_length / train_ratio = 2 x 8 / 16 = 1 action (4 frames)
+    assert ck["state"]["updates"] == (240 - 80) // 4 and ck["task"] == "push_green"
     log = run_script(
         "dreamer_baseline.py", tmp, *RD, "--obs", "vae", "--checkpoint-dir", str(tmp / "ck"), *TINY,
-        "--total-steps", "30", "--learning-starts", "10", "--batch-size", "2", "--eval-episodes", "1",
+        "--total-steps", "120", "--learning-starts", "40", "--batch-size", "2", "--eval-episodes", "1",
         "--eval-every", "1000", timeout=600,
     )  # fmt: skip
     assert "VAE-Dreamer 12m" in log and "final_success_count" in log
@@ -203,7 +205,7 @@ def test_expert_checkpoint_errors(ss_run, tmp_path):
     ss_policy = ss_run[2].with_suffix(".policy.pt2")
     with pytest.raises(ValueError, match="policy for env 'simple_shapes'"):
         P.load_expert_policies((str(ss_policy),), ["push_green"])
-    with pytest.raises(FileNotFoundError, match="python dreamer_baseline.py --env robodesk"):
+    with pytest.raises(P.UsageError, match="python dreamer_baseline.py --env robodesk"):
         P.load_expert_policies((str(tmp_path / "none.pt"),), ["push_green"])
     bad = tmp_path / "bad.policy.pt2"
     bad.write_bytes(b"not an archive")
@@ -280,14 +282,14 @@ def test_imagination_gradients_follow_the_actor_gradient_mode(pretrained):
 
 
 def test_bad_input_is_explained(tmp_path, pretrained):
-    with pytest.raises(FileNotFoundError, match="python pretrain_vae_gw.py --env simple_shapes"):
+    with pytest.raises(D.UsageError, match="python pretrain_vae_gw.py --env simple_shapes"):
         D.main(small_args(pretrained, obs="vae", checkpoint_dir=str(tmp_path)))
     rd_vae = str(pretrained[0] / "ck" / "simple_shapes" / "vae.pt")
     with pytest.raises(ValueError, match="made for env 'simple_shapes'.*'robodesk'"):
         D.main(small_args(pretrained, env="robodesk", obs="vae", vae_checkpoint=rd_vae))
     with pytest.raises(ValueError, match="unknown RoboDesk task 'fly'"):
         D.main(small_args(pretrained, env="robodesk", task="fly"))
-    with pytest.raises(FileNotFoundError, match="python dreamer_baseline.py --env simple_shapes --obs raw"):
+    with pytest.raises(D.UsageError, match="python dreamer_baseline.py --env simple_shapes --obs raw"):
         D.main(small_args(pretrained, eval_only=True, checkpoint=str(tmp_path / "none.pt")))
     with pytest.raises(ValueError, match="multiple of the GRU's 8 blocks"):
         D.Args(deter=100).resolve()

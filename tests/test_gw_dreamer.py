@@ -122,12 +122,12 @@ def test_clip_checkpoint_makes_clip_dreamer(pretrained):
 
 
 def test_missing_or_mismatched_checkpoints_are_explained(pretrained, pretrained_robodesk, tmp_path):
-    with pytest.raises(FileNotFoundError, match="python pretrain_vae_gw.py --env simple_shapes"):
+    with pytest.raises(G.UsageError, match="python pretrain_vae_gw.py --env simple_shapes"):
         G.main(G.Args(checkpoint_dir=str(tmp_path)))
     rd_gw = pretrained_robodesk[0] / "ck" / "robodesk" / "gw.pt"
     with pytest.raises(ValueError, match="made for env 'robodesk'.*'simple_shapes'"):
         G.main(ss_args(pretrained, gw_checkpoint=str(rd_gw)))
-    with pytest.raises(FileNotFoundError, match="python gw_dreamer.py --env simple_shapes"):
+    with pytest.raises(G.UsageError, match="python gw_dreamer.py --env simple_shapes"):
         G.main(ss_args(pretrained, eval_only=True, checkpoint=str(tmp_path / "none.pt")))
     with pytest.raises(ValueError, match="unknown RoboDesk task 'fly'"):
         G.main(G.Args(env="robodesk", task="fly", checkpoint_dir=str(pretrained_robodesk[0] / "ck")))

@@ -235,13 +235,13 @@ def test_gw_learning_rate_follows_the_one_cycle_table():
 
 def test_missing_checkpoints_are_explained(pretrained, pretrained_robodesk, tmp_path):
     with pytest.raises(
-        FileNotFoundError, match="python pretrain_vae_gw.py --env simple_shapes --stages collect vae"
+        E.UsageError, match="python pretrain_vae_gw.py --env simple_shapes --stages collect vae"
     ):
         E.main(E.Args(checkpoint_dir=str(tmp_path)))
     rd_vae = pretrained_robodesk[0] / "ck" / "robodesk" / "vae.pt"
     with pytest.raises(ValueError, match="made for env 'robodesk'.*'simple_shapes'"):
         E.main(ss_args(pretrained, vae_checkpoint=str(rd_vae)))
-    with pytest.raises(FileNotFoundError, match="python gw_dreamer_e2e.py --env simple_shapes"):
+    with pytest.raises(E.UsageError, match="python gw_dreamer_e2e.py --env simple_shapes"):
         E.main(ss_args(pretrained, eval_only=True, checkpoint=str(tmp_path / "none.pt")))
     with pytest.raises(ValueError, match="unknown RoboDesk task 'fly'"):
         E.main(E.Args(env="robodesk", task="fly", checkpoint_dir=str(pretrained_robodesk[0] / "ck")))

@@ -56,11 +56,12 @@ def test_robodesk_cli_run_of_each_variant(pretrained_robodesk, variant):
     log = run_script(
         "ppo_variants.py", tmp, "--env", "robodesk", "--variant", variant,
         "--checkpoint-dir", str(tmp / "ck"), "--render-quality", "fast", "--episode-length", "80", *TINY,
-        "--num-steps", "32", "--total-steps", "64", "--eval-episodes", "1", timeout=600,
+        "--num-steps", "32", "--total-steps", "256", "--eval-episodes", "1", timeout=600,
     )  # fmt: skip
     assert f"{variant} PPO on robodesk_push_green" in log and "final_success_count" in log
     ck = torch.load(agent_path(tmp, "robodesk", variant, "_push_green"), weights_only=False)
-    assert ck["state"]["env_steps"] == 64 and "actor_logstd" in ck["agent"]  # Gaussian actions
+    # one rollout of 2 x 32 actions, counted in frames (4 per action, the paper's unit)
+    assert ck["state"]["env_steps"] == 256 and "actor_logstd" in ck["agent"]  # Gaussian actions
 
 
 def test_a_short_run_beats_the_random_policy(tmp_path, monkeypatch):
@@ -89,7 +90,7 @@ def test_stop_at_criterion_ends_the_run_after_that_rollout(pretrained, tmp_path,
     out = PPO.main(PPO.Args(total_steps=128 * 40, stop_at_criterion=True, **small))
     assert out["criterion_step"] is not None and out["env_steps"] < 128 * 40
     assert out["env_steps"] - 128 < out["criterion_step"] <= out["env_steps"]  # the rollout it was met in
-    out = PPO.main(PPO.Args(total_steps=128 * 4, **small))
+    out = PPO.main(PPO.Args(total_steps=128 * 4, overwrite=True, **small))
     assert out["env_steps"] == 128 * 4  # without the flag the run goes on
 
 
@@ -177,7 +178,7 @@ def test_reward_normaliser_scales_by_the_return_std():
 
 def test_errors_are_explained(pretrained, pretrained_robodesk, tmp_path):
     with pytest.raises(
-        FileNotFoundError, match="python pretrain_vae_gw.py --env simple_shapes --stages collect vae"
+        PPO.UsageError, match="python pretrain_vae_gw.py --env simple_shapes --stages collect vae"
     ):
         PPO.main(PPO.Args(variant="vae", checkpoint_dir=str(tmp_path)))
     ck = pretrained[0] / "ck"
@@ -190,9 +191,9 @@ def test_errors_are_explained(pretrained, pretrained_robodesk, tmp_path):
     rd_vae = str(pretrained_robodesk[0] / "ck" / "robodesk" / "vae.pt")
     with pytest.raises(ValueError, match="made for env 'robodesk'"):
         PPO.main(PPO.Args(variant="vae", checkpoint_dir=str(ck), vae_checkpoint=rd_vae))
-    with pytest.raises(FileNotFoundError, match="python ppo_variants.py --env simple_shapes --variant raw"):
+    with pytest.raises(PPO.UsageError, match="python ppo_variants.py --env simple_shapes --variant raw"):
         PPO.main(PPO.Args(variant="raw", checkpoint_dir=str(tmp_path), eval_only=True))
     with pytest.raises(ValueError, match="unknown RoboDesk task 'fly'"):
         PPO.main(PPO.Args(env="robodesk", task="fly", variant="raw"))
-    with pytest.raises(ValueError, match="smaller than one minibatch"):
+    with pytest.raises(PPO.UsageError, match="must fit in one rollout"):
         PPO.main(PPO.Args(variant="raw", num_steps=8, minibatch_size=512))

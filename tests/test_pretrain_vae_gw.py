@@ -1,5 +1,7 @@
 """pretrain_vae_gw.py: stages through the CLI, GW losses by hand, learning, reloading, errors."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 import torch
@@ -69,9 +71,9 @@ def test_mismatched_or_missing_checkpoints_and_bad_data_are_explained(trained, t
         P.load_vaes(ck, "robodesk")
     with pytest.raises(ValueError, match="'vae' checkpoint, expected 'gw'"):
         P.load_checkpoint(ck, "gw", "simple_shapes", "cmd")
-    with pytest.raises(FileNotFoundError, match="--stages collect vae"):
+    with pytest.raises(P.UsageError, match="--stages collect vae"):
         P.load_vaes(tmp_path / "nothing.pt", "simple_shapes")
-    with pytest.raises(FileNotFoundError, match="--stages collect"):
+    with pytest.raises(P.UsageError, match="--stages collect"):
         P.load_data(tmp_path, "simple_shapes")
     P.write_shard(tmp_path, np.zeros((4, 64, 64, 3), np.uint8), np.zeros((4, 11)), "random")
     with pytest.raises(ValueError, match="do not match env simple_shapes"):
@@ -184,23 +186,23 @@ def test_vae_and_gw_stages_resume_after_an_interruption(tmp_path, monkeypatch, c
         real_save(obj, path)
 
     monkeypatch.setattr(P, "atomic_save", interrupted)
-    writer = SummaryWriter(str(tmp_path / "runs"))
+    writer, no_stop = SummaryWriter(str(tmp_path / "runs")), SimpleNamespace(requested=False)
     with pytest.raises(KeyboardInterrupt):
-        P.train_vae(args, writer)
+        P.train_vae(args, writer, no_stop)
     partial = tmp_path / "ck" / "simple_shapes" / "vae.partial.pt"
     assert torch.load(partial, weights_only=False)["step"] == 10
     monkeypatch.setattr(P, "atomic_save", real_save)
-    P.train_vae(args, writer)
-    assert "resuming from step 10" in capsys.readouterr().out
+    P.train_vae(args, writer, no_stop)
+    assert "continuing the unfinished stage in" in capsys.readouterr().out
     assert not partial.exists() and (tmp_path / "ck" / "simple_shapes" / "vae.pt").is_file()
     # The gw stage resumes the same way.
     args.gw_steps, args.gw_batch_size = 12, 16
     monkeypatch.setattr(P, "atomic_save", interrupted)
     with pytest.raises(KeyboardInterrupt):
-        P.train_gw(args, writer)
+        P.train_gw(args, writer, no_stop)
     monkeypatch.setattr(P, "atomic_save", real_save)
-    P.train_gw(args, writer)
-    assert "resuming from step 10" in capsys.readouterr().out
+    P.train_gw(args, writer, no_stop)
+    assert "from step 10" in capsys.readouterr().out
     assert (tmp_path / "ck" / "simple_shapes" / "gw.pt").is_file()
 
 

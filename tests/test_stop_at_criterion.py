@@ -24,5 +24,6 @@ def test_stop_at_criterion_ends_the_run_at_the_criterion(module, pretrained, tmp
     args = tiny_agent_args(module, pretrained, total_steps=50_000, stop_at_criterion=True, **small)
     out = module.main(args)
     assert out["criterion_step"] is not None and out["env_steps"] == out["criterion_step"] < 50_000
-    out = module.main(tiny_agent_args(module, pretrained, total_steps=out["env_steps"] + 100, **small))
+    again = tiny_agent_args(module, pretrained, total_steps=out["env_steps"] + 100, overwrite=True, **small)
+    out = module.main(again)
     assert out["criterion_step"] < out["env_steps"]  # without the flag the run goes on

@@ -1,0 +1,338 @@
+"""Safe runs, through the real CLIs: nothing made earlier is overwritten, mixed or mis-read by accident,
+bad input stops at start with one line (exit code 2), Ctrl-C exits 130 with the work saved, and a save
+killed half-way leaves the previous checkpoint whole. docs/safe_runs.md lists what each case shows."""
+
+import json
+import shutil
+import signal
+import subprocess
+import sys
+import textwrap
+
+import pytest
+import torch
+from conftest import DREAMER_SMALL, ROOT, TINY_PRETRAIN, interrupt_cli, run_cli, run_script
+
+import pretrain_vae_gw as P
+
+# The smallest agent runs of each script: a few updates, one short final evaluation, no periodic saves.
+GW_TINY = (
+    "--learning-starts 20 --batch-size 2 --batch-length 4 --imag-horizon 3 --train-ratio 10 --eval-episodes 1"
+    " --video-every 0 --log-every 1000 --eval-every 100000 --save-every 100000 --total-steps 40"
+).split()
+DREAMER_TINY = [a for k, v in DREAMER_SMALL.items() for a in (f"--{k.replace('_', '-')}", str(v))]
+AGENT_TINY = {
+    "gw_dreamer.py": GW_TINY,
+    "gw_dreamer_e2e.py": [*GW_TINY, "--gw-batch-size", "8"],
+    "dreamer_baseline.py": [*DREAMER_TINY, *GW_TINY],
+    "ppo_variants.py": (
+        "--variant gw --num-envs 2 --num-steps 16 --update-epochs 1 --minibatch-size 16 --eval-episodes 1"
+        " --total-steps 32"
+    ).split(),
+}
+AGENT_SCRIPTS = tuple(AGENT_TINY)
+
+
+def agent_cli(script: str, pretrained, cwd, *extra: str, checkpoint=None) -> subprocess.CompletedProcess:
+    """``script`` on Simple Shapes with its tiny settings, the session's pre-trained VAE/GW, its runs/
+    in ``cwd`` and its agent checkpoint at ``checkpoint`` (default cwd/agent.pt)."""
+    ck = ["--checkpoint-dir", str(pretrained[0] / "ck"), "--checkpoint", str(checkpoint or cwd / "agent.pt")]
+    return run_cli(script, cwd, "--env", "simple_shapes", *ck, *AGENT_TINY[script], *extra)
+
+
+def assert_refused(out: subprocess.CompletedProcess, *phrases: str) -> None:
+    """Exit code 2 and one line on stderr (no traceback) that contains each phrase."""
+    err = out.stderr.strip()
+    assert out.returncode == 2 and err.startswith("error: ") and "\n" not in err, out.stdout + out.stderr
+    for phrase in phrases:
+        assert phrase in err, err
+
+
+@pytest.fixture(scope="module")
+def gw_run(pretrained, tmp_path_factory):
+    """One finished tiny gw_dreamer.py run: (its folder, agent checkpoint, the checkpoint's bytes)."""
+    cwd = tmp_path_factory.mktemp("safe")
+    out = agent_cli("gw_dreamer.py", pretrained, cwd)
+    assert out.returncode == 0, out.stdout + out.stderr
+    return cwd, cwd / "agent.pt", (cwd / "agent.pt").read_bytes()
+
+
+# 1. A second run under the same name ----------
+def test_a_second_run_is_refused_and_overwrite_replaces_it(gw_run, pretrained):
+    cwd, agent, saved = gw_run
+    again = agent_cli("gw_dreamer.py", pretrained, cwd)
+    assert_refused(again, str(agent), "already exist", "add --resume to continue", "--overwrite")
+    assert agent.read_bytes() == saved  # the earlier run's agent is untouched
+    events = cwd / "runs" / "gw_dreamer_gw_simple_shapes_s1"
+    assert len(list(events.glob("events.*"))) == 1
+    # On purpose: --overwrite replaces the agent and the TensorBoard folder (no mixed events).
+    other = cwd / "other"
+    shutil.copytree(cwd / "runs", other / "runs")
+    shutil.copy(agent, other / "agent.pt")
+    out = agent_cli("gw_dreamer.py", pretrained, other, "--overwrite", "--seed", "1")
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert len(list((other / "runs" / events.name).glob("events.*"))) == 1
+    assert (other / "agent.pt").read_bytes() != saved
+
+
+@pytest.mark.parametrize("script", AGENT_SCRIPTS[1:])
+def test_every_agent_script_refuses_to_replace_an_earlier_agent(script, pretrained, tmp_path):
+    earlier = tmp_path / "agent.pt"
+    earlier.write_bytes(b"an earlier run's agent")
+    assert_refused(agent_cli(script, pretrained, tmp_path), "already exist", "--resume", "--overwrite")
+    assert earlier.read_bytes() == b"an earlier run's agent"
+    assert not (tmp_path / "runs").exists()  # nothing was started
+
+
+def test_pretraining_never_replaces_a_checkpoint_made_otherwise(pretrained, tmp_path):
+    ck = tmp_path / "ck" / "simple_shapes"
+    shutil.copytree(pretrained[0] / "ck" / "simple_shapes", ck, ignore=shutil.ignore_patterns("agents"))
+    data = ["--data-dir", str(pretrained[0] / "data"), "--env", "simple_shapes", "--stages", "gw"]
+    paths = ["--checkpoint-dir", str(tmp_path / "ck"), *TINY_PRETRAIN]
+    gw = (ck / "gw.pt").read_bytes()
+    same = run_script("pretrain_vae_gw.py", tmp_path, *data, *paths)
+    assert "was made with these settings: stage skipped" in same and (ck / "gw.pt").read_bytes() == gw
+    # later flags win in tyro: --gw-steps 21 replaces the tiny 20
+    out = run_cli("pretrain_vae_gw.py", tmp_path, *data, *paths, "--gw-steps", "21")
+    assert_refused(out, str(ck / "gw.pt"), "made with --gw-steps 20", "--overwrite")
+    assert (ck / "gw.pt").read_bytes() == gw
+    run_script("pretrain_vae_gw.py", tmp_path, *data, *paths, "--gw-steps", "21", "--overwrite")
+    assert torch.load(ck / "gw.pt", weights_only=False)["identity"]["gw_steps"] == 21
+
+
+# 2. Pre-training partials of other settings ----------
+def test_pretraining_refuses_a_partial_stage_of_other_settings(pretrained, tmp_path):
+    """Ctrl-C during the vae stage saves a partial (exit 130); other flags refuse to continue it, naming
+    the file and the differing flag; a damaged partial is named too; --overwrite starts the stage over."""
+    vae = ["--data-dir", str(pretrained[0] / "data"), "--env", "simple_shapes", "--stages", "vae"]
+    vae += ["--checkpoint-dir", str(tmp_path / "ck"), *TINY_PRETRAIN]  # --vae-steps 12
+    long = ["--vae-steps", "5000", "--save-every", "100000"]  # later flags win in tyro
+    code, log = interrupt_cli("pretrain_vae_gw.py", tmp_path, "[vae] ", *vae, *long)
+    partial = tmp_path / "ck" / "simple_shapes" / "vae.partial.pt"
+    assert code == 130 and "[pretrain] interrupted in the vae stage at step" in log, log
+    assert "Traceback" not in log and partial.is_file()
+    saved = partial.read_bytes()
+    assert_refused(run_cli("pretrain_vae_gw.py", tmp_path, *vae), str(partial), "made with --vae-steps 5000")
+    assert partial.read_bytes() == saved  # kept for the command that made it
+    partial.write_bytes(saved[:1000])  # a partial cut short (a full disk): named, not a pickle dump
+    out = run_cli("pretrain_vae_gw.py", tmp_path, *vae, *long)
+    assert_refused(out, f"cannot read {partial}", "add --overwrite to start the unfinished vae stage over")
+    run_script("pretrain_vae_gw.py", tmp_path, *vae, "--overwrite")
+    made = torch.load(tmp_path / "ck" / "simple_shapes" / "vae.pt", weights_only=False)
+    assert made["identity"]["vae_steps"] == 12 and not partial.exists()
+
+
+# 3. --resume with changed settings ----------
+def test_resume_refuses_changed_settings_and_accepts_a_longer_run(gw_run, pretrained):
+    cwd, agent, saved = gw_run
+    out = agent_cli("gw_dreamer.py", pretrained, cwd, "--resume", "--wm-lr", "0.002", "--buffer-size", "500")
+    assert_refused(out, "made with --buffer-size 100000 --wm-lr 0.001", "give the same settings")
+    assert agent.read_bytes() == saved
+    cont = cwd / "cont"
+    cont.mkdir()
+    shutil.copy(agent, cont / "agent.pt")
+    out = agent_cli("gw_dreamer.py", pretrained, cont, "--resume", "--total-steps", "60", "--log-every", "7")
+    assert out.returncode == 0 and "resuming" in out.stdout, out.stdout + out.stderr
+    assert torch.load(cont / "agent.pt", weights_only=False)["state"]["env_steps"] == 60
+
+
+# 4. Data and agents of another task ----------
+def test_collect_refuses_data_of_other_settings(pretrained, pretrained_robodesk, tmp_path):
+    folder = pretrained[0] / "data" / "simple_shapes"
+    manifest = json.loads((folder / "manifest.json").read_text())
+    assert manifest == {"env": "simple_shapes", "seed": 1, "wide_share": 0.0}
+    shutil.copytree(folder, tmp_path / "data" / "simple_shapes")
+    common = ["--data-dir", str(tmp_path / "data"), "--checkpoint-dir", str(tmp_path / "ck"), *TINY_PRETRAIN]
+    out = run_cli("pretrain_vae_gw.py", tmp_path, "--env", "simple_shapes", *common, "--seed", "2")
+    assert_refused(out, str(tmp_path / "data" / "simple_shapes"), "collected with --seed 1", "--data-dir")
+    (tmp_path / "data" / "simple_shapes" / "manifest.json").unlink()
+    out = run_cli("pretrain_vae_gw.py", tmp_path, "--env", "simple_shapes", *common)
+    assert_refused(out, "without a manifest.json")
+    assert not list(tmp_path.rglob("*.pt"))  # no stage ran
+    # RoboDesk: data of the push_green expert is not reused for another task
+    rd = ["--data-dir", str(pretrained_robodesk[0] / "data"), "--checkpoint-dir", str(tmp_path / "ck")]
+    out = run_cli("pretrain_vae_gw.py", tmp_path, "--env", "robodesk", *rd, "--task", "open_drawer")
+    assert_refused(out, "collected with --tasks push_green", "another --data-dir")
+
+
+def test_an_agent_of_one_task_refuses_another(pretrained_robodesk, tmp_path):
+    ck = ["--checkpoint-dir", str(pretrained_robodesk[0] / "ck"), "--checkpoint", str(tmp_path / "a.pt")]
+    rd = ["--env", "robodesk", "--render-quality", "fast", "--episode-length", "8", *ck, *GW_TINY]
+    run_script("gw_dreamer.py", tmp_path, *rd, "--task", "push_green", "--learning-starts", "8")
+    out = run_cli("gw_dreamer.py", tmp_path, *rd, "--task", "open_drawer", "--eval-only")
+    assert_refused(out, "trained with --task push_green; pass --task push_green")
+
+
+# 5. Bad output paths, damaged checkpoints, Ctrl-C in the final evaluation ----------
+def test_unwritable_outputs_stop_the_run_before_it_trains(pretrained, tmp_path):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    out = agent_cli("gw_dreamer.py", pretrained, tmp_path, checkpoint=blocker / "agent.pt")
+    assert_refused(out, f"cannot write to {blocker}")
+    assert "step" not in out.stdout and not (tmp_path / "runs").exists()
+    data = ["--data-dir", str(pretrained[0] / "data"), *TINY_PRETRAIN, "--stages", "vae"]
+    out = run_cli("pretrain_vae_gw.py", tmp_path, *data, "--checkpoint-dir", str(blocker))
+    assert_refused(out, f"cannot write to {blocker}")
+
+
+def test_a_damaged_checkpoint_names_its_path_and_the_command_that_remakes_it(gw_run, pretrained, tmp_path):
+    broken = tmp_path / "broken.pt"
+    broken.write_bytes(gw_run[2][: len(gw_run[2]) // 2])
+    out = agent_cli("gw_dreamer.py", pretrained, tmp_path, "--eval-only", checkpoint=broken)
+    assert_refused(out, f"cannot read {broken}", "python gw_dreamer.py --env simple_shapes")
+    shutil.copytree(pretrained[0] / "ck" / "simple_shapes", tmp_path / "ck" / "simple_shapes")
+    gw = tmp_path / "ck" / "simple_shapes" / "gw.pt"
+    gw.write_text("a text file")
+    out = run_cli(
+        "gw_dreamer.py", tmp_path, "--env", "simple_shapes", "--checkpoint-dir", str(tmp_path / "ck")
+    )
+    assert_refused(out, f"cannot read {gw}", "python pretrain_vae_gw.py --env simple_shapes")
+
+
+SIGINT_IN = textwrap.dedent(
+    """
+    import os, signal, sys
+    sys.path.insert(0, {root!r})
+    import {module} as m
+    real = m.{func}
+    def final_evaluation(*a, **k):  # Ctrl-C arrives as the final evaluation starts
+        os.kill(os.getpid(), signal.SIGINT)
+        return real(*a, **k)
+    m.{func} = final_evaluation
+    sys.argv = {argv!r}
+    m.cli(m.main, m.Args)
+    """
+)
+FINAL_EVAL = {
+    "gw_dreamer.py": "run_episodes",
+    "gw_dreamer_e2e.py": "run_episodes",
+    "dreamer_baseline.py": "run_episodes",
+    "ppo_variants.py": "evaluate",
+}
+
+
+@pytest.mark.parametrize("script", AGENT_SCRIPTS)
+def test_ctrl_c_in_the_final_evaluation_keeps_the_trained_agent(script, pretrained, tmp_path):
+    ck = ["--checkpoint-dir", str(pretrained[0] / "ck"), "--checkpoint", str(tmp_path / "agent.pt")]
+    argv = [script, "--env", "simple_shapes", *ck, *AGENT_TINY[script]]
+    code = SIGINT_IN.format(root=str(ROOT), module=script[:-3], func=FINAL_EVAL[script], argv=argv)
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=300
+    )
+    log = out.stdout + out.stderr
+    assert out.returncode == 130 and "interrupted in the final evaluation; the agent is saved" in log, log
+    assert "Traceback" not in log
+    state = torch.load(tmp_path / "agent.pt", weights_only=False)["state"]
+    assert state["env_steps"] == int(AGENT_TINY[script][AGENT_TINY[script].index("--total-steps") + 1])
+
+
+def test_ctrl_c_during_ppo_training_saves_and_exits_130(pretrained, tmp_path):
+    ppo = [a if a != "32" else "100000" for a in AGENT_TINY["ppo_variants.py"]]  # a long run
+    ck = ["--checkpoint-dir", str(pretrained[0] / "ck"), "--checkpoint", str(tmp_path / "agent.pt")]
+    code, log = interrupt_cli("ppo_variants.py", tmp_path, "[ppo] step ", "--env", "simple_shapes", *ck, *ppo)
+    assert code == 130 and "the same command with --resume continues the run" in log, log
+    assert "Traceback" not in log
+    step = torch.load(tmp_path / "agent.pt", weights_only=False)["state"]["env_steps"]
+    assert 0 < step < 100000 and f"interrupted at env step {step:,}" in log
+
+
+# 6. Numbers that make no sense ----------
+BAD_FLAGS = [
+    ("gw_dreamer.py", ["--total-steps", "-5"], "--total-steps -5: must be at least 1"),
+    ("gw_dreamer.py", ["--buffer-size", "5"], "--buffer-size 5: must hold a replayed sequence"),
+    ("gw_dreamer.py", ["--num-envs", "0"], "--num-envs 0: must be at least 1"),
+    ("gw_dreamer.py", ["--train-ratio", "0"], "--train-ratio 0.0: must be positive"),
+    ("gw_dreamer.py", ["--batch-size", "0"], "--batch-size 0: must be at least 1"),
+    ("gw_dreamer.py", ["--save-every", "0"], "--save-every 0: must be at least 1"),
+    ("gw_dreamer.py", ["--drop", "vision"], "--drop vision: is for evaluation: add --eval-only"),
+    ("gw_dreamer.py", ["--resume", "--overwrite"], "cannot go with --overwrite"),
+    ("gw_dreamer_e2e.py", ["--gw-batch-size", "1"], "--gw-batch-size 1"),
+    ("dreamer_baseline.py", ["--train-ratio", "0"], "--train-ratio 0.0: must be positive"),
+    ("ppo_variants.py", ["--num-envs", "0"], "--num-envs 0: must be at least 1"),
+    ("ppo_variants.py", ["--drop", "attr"], "--drop attr: is for evaluation: add --eval-only"),
+    ("pretrain_vae_gw.py", ["--vae-batch-size", "1"], "--vae-batch-size 1: must be at least 2"),
+    ("pretrain_vae_gw.py", ["--n-samples", "0"], "--n-samples 0: must be at least 1"),
+]
+
+
+def test_flags_out_of_range_stop_at_start_with_one_line(tmp_path):
+    """All at once (each is a process start): exit 2, one line, and nothing written."""
+    procs = [
+        subprocess.Popen(
+            [sys.executable, str(ROOT / script), *flags, "--checkpoint-dir", str(tmp_path / "ck")],
+            cwd=tmp_path,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for script, flags, _ in BAD_FLAGS
+    ]
+    for proc, (*_, message) in zip(procs, BAD_FLAGS, strict=True):
+        stdout, stderr = proc.communicate(timeout=300)
+        assert_refused(subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr), message)
+    assert not (tmp_path / "ck").exists() and not (tmp_path / "runs").exists()
+
+
+# Saves killed half-way ----------
+KILLED_SAVE = textwrap.dedent(
+    """
+    import os, sys, time
+    sys.path.insert(0, {root!r})
+    import gw_dreamer as G
+    def stall(fd):  # the new file is written but not yet in place: the process dies here
+        print("writing", flush=True)
+        time.sleep(120)
+    os.fsync = stall
+    G.atomic_save({{"version": 2, "payload": list(range(100000))}}, G.Path({path!r}))
+    """
+)
+
+
+def test_kill_9_during_a_save_leaves_the_previous_checkpoint_loadable(tmp_path):
+    import gw_dreamer as G
+
+    path = tmp_path / "agent.pt"
+    G.atomic_save({"version": 1}, path)
+    code = KILLED_SAVE.format(root=str(ROOT), path=str(path))
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "writing"
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=60)
+    assert torch.load(path, weights_only=False) == {"version": 1}
+    # its temporary file is its own (named by its process id), so another process's save is unaffected
+    assert [p.name for p in tmp_path.iterdir() if p.suffix == ".tmp"] == [f".agent.pt.{proc.pid}.tmp"]
+    G.atomic_save({"version": 3}, path)
+    assert torch.load(path, weights_only=False) == {"version": 3}
+
+
+def test_stage_identity_covers_the_data_and_the_vaes():
+    """The gw stage's identity changes with its own flags, the data's and the VAE weights it encodes with."""
+    base = P.Args(env="simple_shapes").resolve()
+    ident = P.stage_identity(base, "gw", vae_fingerprint=1.0)
+    assert ident != P.stage_identity(base, "gw", vae_fingerprint=2.0)
+    assert ident != P.stage_identity(P.Args(env="simple_shapes", wide_share=0.5).resolve(), "gw", 1.0)
+    assert ident != P.stage_identity(P.Args(env="simple_shapes", gw_lr=1e-3).resolve(), "gw", 1.0)
+    assert ident == P.stage_identity(P.Args(env="simple_shapes", log_every=7).resolve(), "gw", 1.0)
+
+
+SAFE_RUN_BLOCK = tuple(
+    "UsageError require atomic_save read_checkpoint ensure_writable claim_outputs setting_changes StopRequest"
+    " cli".split()
+)
+
+
+def test_the_safe_run_block_is_the_same_in_every_script():
+    """Each script carries its own copy (one file per algorithm); the copies must not drift apart."""
+    import ast
+
+    scripts = (*AGENT_SCRIPTS, "pretrain_vae_gw.py")
+    copies = {}
+    for script in scripts:
+        text = (ROOT / script).read_text()
+        for node in ast.parse(text).body:
+            if isinstance(node, (ast.FunctionDef, ast.ClassDef)) and node.name in SAFE_RUN_BLOCK:
+                copies.setdefault(node.name, {})[script] = ast.get_source_segment(text, node)
+    for name in SAFE_RUN_BLOCK:
+        expected = scripts if name != "claim_outputs" else AGENT_SCRIPTS  # pre-training claims per stage
+        assert set(copies[name]) == set(expected), (name, set(copies[name]))
+        assert len(set(copies[name].values())) == 1, f"{name} differs between {sorted(copies[name])}"
