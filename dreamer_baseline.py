@@ -56,7 +56,10 @@ class Args:
     env: Literal["simple_shapes", "robodesk"] = "simple_shapes"
     """environment"""
     task: str = "push_green"
-    """RoboDesk task (ignored for Simple Shapes)"""
+    """RoboDesk task (ignored for Simple Shapes): one of open_slide, open_drawer, push_green, stack,
+    upright_block_off_table, flat_block_in_bin, flat_block_in_shelf, lift_upright_block, lift_ball
+    (RoboDesk's core tasks), push_blue, push_red, flat_block_off_table, ball_off_table,
+    upright_block_in_bin, ball_in_bin, upright_block_in_shelf, ball_in_shelf, lift_flat_block"""
     obs: Literal["raw", "vae"] = "raw"
     """raw: image + attributes (Dreamer); vae: the frozen VAE means [u_v, u_attr] as one vector
     (the paper's VAE-Dreamer)"""
@@ -137,7 +140,7 @@ class Args:
 
     # environments
     render_quality: Literal["faithful", "fast"] = "faithful"
-    """RoboDesk image quality (fast: CPU experiments only, see the README)"""
+    """RoboDesk image quality (fast: CPU experiments only, docs/environments.md)"""
     episode_length: int = 2000
     """RoboDesk episode length in physics-control repeats (paper: 2000, i.e. 500 agent steps)"""
 
@@ -209,7 +212,6 @@ ENV_SPECS = {  # must agree with envs/ and pretrain_vae_gw.py
     "simple_shapes": {"image": 32, "attr": 11, "latent": 10, "actions": 7},
     "robodesk": {"image": 64, "attr": 76, "latent": 40, "actions": 5},
 }
-PRETRAIN = "python pretrain_vae_gw.py --env {env}"
 
 
 # --------------------------------------------------------------------------------------------------
@@ -268,21 +270,6 @@ class AttrVAE(nn.Module):
 
     def encode_mean(self, a: torch.Tensor) -> torch.Tensor:
         return self.encoder(a).chunk(2, dim=-1)[0]
-
-
-def load_vae(path: Path, env: str) -> dict:
-    make = PRETRAIN.format(env=env) + " --stages collect vae"
-    if not path.is_file():
-        raise UsageError(f"no vae checkpoint at {path}; --obs vae needs one: make it with `{make}`")
-    ckpt = read_checkpoint(path, make)
-    if ckpt.get("kind") != "vae":
-        raise UsageError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected 'vae'")
-    if ckpt.get("env") != env:
-        raise UsageError(
-            f"{path} was made for env {ckpt.get('env')!r}, but this run is for env {env!r}; "
-            f"make a matching one with `{make}`"
-        )
-    return ckpt
 
 
 class Observer(nn.Module):
@@ -914,6 +901,86 @@ def dream_filmstrip(agent: Agent, observer: Observer, args: Args, steps: int, se
 
 
 # --------------------------------------------------------------------------------------------------
+# Pre-trained VAEs and GW (the same block in every agent script): where they are read from, and what to
+# run when they are missing. A Simple Shapes VAE + GW made by `pretrain_vae_gw.py --env simple_shapes
+# --cpu-preset` ships in envs/pretrained/ so the main job runs on a fresh clone; checkpoints of your own
+# under --checkpoint-dir always win.
+BUNDLED = Path(__file__).resolve().parent / "envs" / "pretrained"
+ROBODESK_TASKS = "push_green open_slide open_drawer upright_block_off_table flat_block_in_bin"
+# The RoboDesk pipeline, at the CPU scale of docs/environments.md (times measured on a 2-core CPU) or at
+# the paper's scale (times of docs/pretrain_vae_gw.md: one CPU core collecting, one H100 training).
+ROBODESK_PIPELINE = """the RoboDesk agents read the frozen VAEs and GW of pretrain_vae_gw.py; make them first.
+  CPU scale (a GW that runs end to end, too small for control; docs/environments.md):
+    python pretrain_vae_gw.py --env robodesk --stages collect --n-samples 36000 --render-quality fast \\
+        --tasks {tasks}{cd}   # 12 min on 2 cores
+    python pretrain_vae_gw.py --env robodesk --stages vae gw --tasks {tasks}{cd} \\
+        --vae-width 64 --vae-steps 3000 --vae-batch-size 128 --vae-lr-v 1e-3 --vae-lr-attr 3e-3 \\
+        --vae-lr-start-end 1e-3 --beta-attr 0.005 --attr-updates-per-step 2 \\
+        --gw-steps 6000 --gw-batch-size 256 --gw-lr 1e-3 --gw-lr-start-end 1e-4   # 21 min on 2 cores
+    then this command with --render-quality fast
+  paper scale (GPU): python pretrain_vae_gw.py --env robodesk --task {task}{cd}
+    (2M samples: 11 h of collection on one core with --render-quality fast, 190 h faithful; then
+    the visual VAE 30 h, the attribute VAE 35 min and the GW 1.5 h on one H100)"""
+
+
+def pretrained_paths(checkpoint_dir: str, env: str, wanted: dict[str, str | None]) -> dict[str, Path]:
+    """{file name: path} for the pre-trained checkpoints a run needs: the flag's path when given, else
+    <checkpoint_dir>/<env>/<name>, else, when that folder holds none of them, the bundled copies."""
+    folder = Path(checkpoint_dir) / env
+    paths = {name: Path(given) if given else folder / name for name, given in wanted.items()}
+    defaults = [name for name, given in wanted.items() if not given]
+    if (
+        defaults
+        and not any((folder / name).is_file() for name in defaults)
+        and all((BUNDLED / env / name).is_file() for name in defaults)
+    ):
+        paths |= {name: BUNDLED / env / name for name in defaults}
+        print(
+            f"[pretrained] {folder} holds no {' / '.join(defaults)}: using the bundled copies in "
+            f"envs/pretrained/{env}/ (made by `python pretrain_vae_gw.py --env {env} --cpu-preset`)"
+        )
+    return paths
+
+
+def pretrain_command(env: str, checkpoint_dir: str, stages: str, extra: str = "") -> str:
+    """The pretrain_vae_gw.py command that makes a missing checkpoint, with the user's --checkpoint-dir."""
+    preset = " --cpu-preset" if env == "simple_shapes" else ""  # the scale that runs on a CPU
+    cd = "" if checkpoint_dir == "checkpoints" else f" --checkpoint-dir {checkpoint_dir}"
+    return f"python pretrain_vae_gw.py --env {env} --stages {stages}{preset}{extra}{cd}"
+
+
+def load_pretrained(
+    path: Path,
+    kind: str,
+    env: str,
+    stages: str,
+    checkpoint_dir: str = "checkpoints",
+    task: str = "push_green",
+    extra: str = "",
+) -> dict:
+    """A checkpoint of pretrain_vae_gw.py, checked against ``kind`` and ``env``; when it is missing, the
+    error gives the command that makes it (on RoboDesk, the whole pipeline)."""
+    make = pretrain_command(env, checkpoint_dir, stages, extra)
+    if not path.is_file():
+        if env == "robodesk":
+            cd = "" if checkpoint_dir == "checkpoints" else f" --checkpoint-dir {checkpoint_dir}"
+            raise UsageError(
+                f"no {kind} checkpoint at {path}: "
+                + ROBODESK_PIPELINE.format(tasks=ROBODESK_TASKS, task=task, cd=cd)
+            )
+        raise UsageError(f"no {kind} checkpoint at {path}; make it with `{make}`")
+    ckpt = read_checkpoint(path, make)
+    if ckpt.get("kind") != kind:
+        raise UsageError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected {kind!r}")
+    if ckpt.get("env") != env:
+        raise UsageError(
+            f"{path} was made for env {ckpt.get('env')!r}, but this run is for env {env!r}; "
+            f"make a matching one with `{make}`"
+        )
+    return ckpt
+
+
+# --------------------------------------------------------------------------------------------------
 # Safe runs: a new run never overwrites an earlier one, a resumed run is the same run, checkpoints are
 # written atomically, and bad settings or unreadable files stop the run at once with one line
 # --------------------------------------------------------------------------------------------------
@@ -1218,10 +1285,9 @@ def make_optimizers(agent: Agent, args: Args) -> dict:
 def load_observer(args: Args) -> tuple[Observer, str | None]:
     if args.obs == "raw":
         return Observer(args.env, "raw", None), None
-    vae_path = (
-        Path(args.vae_checkpoint) if args.vae_checkpoint else Path(args.checkpoint_dir) / args.env / "vae.pt"
-    )
-    return Observer(args.env, "vae", load_vae(vae_path, args.env)), str(vae_path)
+    vae_path = pretrained_paths(args.checkpoint_dir, args.env, {"vae.pt": args.vae_checkpoint})["vae.pt"]
+    vae = load_pretrained(vae_path, "vae", args.env, "collect vae", args.checkpoint_dir, args.task)
+    return Observer(args.env, "vae", vae), str(vae_path)
 
 
 # --------------------------------------------------------------------------------------------------

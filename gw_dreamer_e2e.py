@@ -48,7 +48,10 @@ class Args:
     env: Literal["simple_shapes", "robodesk"] = "simple_shapes"
     """environment"""
     task: str = "push_green"
-    """RoboDesk task (ignored for Simple Shapes)"""
+    """RoboDesk task (ignored for Simple Shapes): one of open_slide, open_drawer, push_green, stack,
+    upright_block_off_table, flat_block_in_bin, flat_block_in_shelf, lift_upright_block, lift_ball
+    (RoboDesk's core tasks), push_blue, push_red, flat_block_off_table, ball_off_table,
+    upright_block_in_bin, ball_in_bin, upright_block_in_shelf, ball_in_shelf, lift_flat_block"""
     seed: int = 1
     """seed of the environments, the networks and the replay sampling"""
     exp_name: str = "gw_dreamer_e2e"
@@ -126,8 +129,8 @@ class Args:
     wm_done_coef: float = 1.0
     """weight of the done BCE in L_WM"""
     reward_loss: Literal["twohot", "mse"] = "twohot"
-    """reward head: 255-bin two-hot over symlog rewards (the table's FC_256 output, PAPER_NOTES) or one
-    output trained with MSE on symlog(r) (the text's 'MSE')"""
+    """reward head: 255-bin two-hot over symlog rewards (the table's FC_256 output,
+    docs/paper_readings.md) or one output trained with MSE on symlog(r) (the text's 'MSE')"""
     gamma: float = 1 - 1 / 333
     """discount (DreamerV3)"""
     lam: float = 0.95
@@ -143,7 +146,7 @@ class Args:
 
     # environments
     render_quality: Literal["faithful", "fast"] = "faithful"
-    """RoboDesk image quality (fast: CPU experiments only, see the README)"""
+    """RoboDesk image quality (fast: CPU experiments only, docs/environments.md)"""
     episode_length: int = 2000
     """RoboDesk episode length in physics-control repeats (paper: 2000, i.e. 500 agent steps)"""
 
@@ -226,7 +229,6 @@ ENV_SPECS = {  # must agree with pretrain_vae_gw.py (checked against the checkpo
     "simple_shapes": {"image": 32, "attr": 11, "latent": 10, "z": 10, "gw_hidden": 64},
     "robodesk": {"image": 64, "attr": 76, "latent": 40, "z": 76, "gw_hidden": 512},
 }
-PRETRAIN = "python pretrain_vae_gw.py --env {env}"
 
 
 # --------------------------------------------------------------------------------------------------
@@ -360,21 +362,6 @@ def gw_lr(update: int, args: Args) -> float:
     return hi + (lo - hi) * (1 + math.cos(math.pi * frac)) / 2
 
 
-def load_pretrained(path: Path, kind: str, env: str, stage: str) -> dict:
-    make = PRETRAIN.format(env=env) + f" --stages {stage}"
-    if not path.is_file():
-        raise UsageError(f"no {kind} checkpoint at {path}; make it with `{make}`")
-    ckpt = read_checkpoint(path, make)
-    if ckpt.get("kind") != kind:
-        raise UsageError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected {kind!r}")
-    if ckpt.get("env") != env:
-        raise UsageError(
-            f"{path} was made for env {ckpt.get('env')!r}, but this run is for env {env!r}; "
-            f"make a matching one with `{make}`"
-        )
-    return ckpt
-
-
 class FrozenVAEs(nn.Module):
     """Observation -> frozen VAE means (u_v, u_attr) (Algorithm 2, "Encode the different observations
     using the pre-trained VAEs"), and u_v -> image for the dream frames."""
@@ -407,9 +394,11 @@ class FrozenVAEs(nn.Module):
         return self.vae_v.decode(u_v)
 
 
-def load_vaes(env: str, vae_path: Path) -> FrozenVAEs:
+def load_vaes(
+    env: str, vae_path: Path, checkpoint_dir: str = "checkpoints", task: str = "push_green"
+) -> FrozenVAEs:
     """The frozen VAEs from pretrain_vae_gw.py's checkpoint, checked against ``env``."""
-    vae = load_pretrained(vae_path, "vae", env, "collect vae")
+    vae = load_pretrained(vae_path, "vae", env, "collect vae", checkpoint_dir, task)
     try:
         return FrozenVAEs(env, vae)
     except RuntimeError as err:  # a state dict of other sizes
@@ -467,7 +456,7 @@ class WorldModel(nn.Module):
     def __init__(self, env: str, z_dim: int, action_dim: int, reward_out: int):
         super().__init__()
         s = SIZES[env]
-        # A linear input layer brings [z, a] to the table's GRU input size (PAPER_NOTES).
+        # A linear input layer brings [z, a] to the table's GRU input size (docs/paper_readings.md).
         self.inp = nn.Sequential(nn.Linear(z_dim + action_dim, s["gru_in"]), nn.ReLU())
         self.gru = nn.GRUCell(s["gru_in"], s["gru_hidden"])
         layers, cin = [], s["gru_hidden"]
@@ -632,9 +621,9 @@ class Replay:
 # --------------------------------------------------------------------------------------------------
 def world_model_loss(wm, reward_dec, batch: dict[str, torch.Tensor], args: Args):
     """L_WM = coef_z MSE(z_{t+1}) + coef_r L_r + coef_d BCE(d_{t+1}) on replayed sequences (Algorithm 1,
-    lines 8-10). Returns the loss, its terms, the GRU state h_t at every entry of the sequences (B, T + 1,
-    hidden: the states dreams can start from) and the mask of valid transitions. MSE is summed over the z
-    dimensions, averaged over transitions."""
+    lines 8-10; Algorithm 2, lines 13-17). Returns the loss, its terms, the GRU state h_t at every entry
+    of the sequences (B, T + 1, hidden: the states dreams can start from) and the mask of valid
+    transitions. MSE is summed over the z dimensions, averaged over transitions."""
     z, a, r, d = batch["z"], batch["a"], batch["r"], batch["d"]
     first, last = batch["first"], batch["last"]
     B, T1, _ = z.shape
@@ -661,8 +650,8 @@ def dream_starts(h_entry: torch.Tensor, batch: dict[str, torch.Tensor], imag_fro
     """The states (h, z) that dreams start from, and their weights (0 for an episode's final observation,
     which has no next step to dream).
 
-    last (the default): one per replayed sequence, its newest entry. Algorithm 1 encodes "the first
-    observation" of a dream and the text gives observations "only at the first step": one dream per
+    last (the default): one per replayed sequence, its newest entry. Algorithms 1 and 2 encode "the
+    first observation" of a dream and the text gives observations "only at the first step": one dream per
     sequence, whose FLOPs match the paper's table (docs/paper_readings.md). The newest entry is the one
     whose h_t has read the whole sequence, like h_t when acting; earlier entries of a sequence sampled
     mid-episode have an h_t that started from 0 at the sequence's start, which acting never sees.
@@ -856,6 +845,86 @@ def dream_filmstrip(agent: Agent, vaes: FrozenVAEs, args: Args, steps: int, seed
     env.close()
     dream_img = [(d[0].permute(1, 2, 0).cpu().numpy() * 255).round().astype(np.uint8) for d in dream]
     return np.concatenate([np.concatenate(real, 1), np.concatenate(dream_img, 1)], 0)
+
+
+# --------------------------------------------------------------------------------------------------
+# Pre-trained VAEs and GW (the same block in every agent script): where they are read from, and what to
+# run when they are missing. A Simple Shapes VAE + GW made by `pretrain_vae_gw.py --env simple_shapes
+# --cpu-preset` ships in envs/pretrained/ so the main job runs on a fresh clone; checkpoints of your own
+# under --checkpoint-dir always win.
+BUNDLED = Path(__file__).resolve().parent / "envs" / "pretrained"
+ROBODESK_TASKS = "push_green open_slide open_drawer upright_block_off_table flat_block_in_bin"
+# The RoboDesk pipeline, at the CPU scale of docs/environments.md (times measured on a 2-core CPU) or at
+# the paper's scale (times of docs/pretrain_vae_gw.md: one CPU core collecting, one H100 training).
+ROBODESK_PIPELINE = """the RoboDesk agents read the frozen VAEs and GW of pretrain_vae_gw.py; make them first.
+  CPU scale (a GW that runs end to end, too small for control; docs/environments.md):
+    python pretrain_vae_gw.py --env robodesk --stages collect --n-samples 36000 --render-quality fast \\
+        --tasks {tasks}{cd}   # 12 min on 2 cores
+    python pretrain_vae_gw.py --env robodesk --stages vae gw --tasks {tasks}{cd} \\
+        --vae-width 64 --vae-steps 3000 --vae-batch-size 128 --vae-lr-v 1e-3 --vae-lr-attr 3e-3 \\
+        --vae-lr-start-end 1e-3 --beta-attr 0.005 --attr-updates-per-step 2 \\
+        --gw-steps 6000 --gw-batch-size 256 --gw-lr 1e-3 --gw-lr-start-end 1e-4   # 21 min on 2 cores
+    then this command with --render-quality fast
+  paper scale (GPU): python pretrain_vae_gw.py --env robodesk --task {task}{cd}
+    (2M samples: 11 h of collection on one core with --render-quality fast, 190 h faithful; then
+    the visual VAE 30 h, the attribute VAE 35 min and the GW 1.5 h on one H100)"""
+
+
+def pretrained_paths(checkpoint_dir: str, env: str, wanted: dict[str, str | None]) -> dict[str, Path]:
+    """{file name: path} for the pre-trained checkpoints a run needs: the flag's path when given, else
+    <checkpoint_dir>/<env>/<name>, else, when that folder holds none of them, the bundled copies."""
+    folder = Path(checkpoint_dir) / env
+    paths = {name: Path(given) if given else folder / name for name, given in wanted.items()}
+    defaults = [name for name, given in wanted.items() if not given]
+    if (
+        defaults
+        and not any((folder / name).is_file() for name in defaults)
+        and all((BUNDLED / env / name).is_file() for name in defaults)
+    ):
+        paths |= {name: BUNDLED / env / name for name in defaults}
+        print(
+            f"[pretrained] {folder} holds no {' / '.join(defaults)}: using the bundled copies in "
+            f"envs/pretrained/{env}/ (made by `python pretrain_vae_gw.py --env {env} --cpu-preset`)"
+        )
+    return paths
+
+
+def pretrain_command(env: str, checkpoint_dir: str, stages: str, extra: str = "") -> str:
+    """The pretrain_vae_gw.py command that makes a missing checkpoint, with the user's --checkpoint-dir."""
+    preset = " --cpu-preset" if env == "simple_shapes" else ""  # the scale that runs on a CPU
+    cd = "" if checkpoint_dir == "checkpoints" else f" --checkpoint-dir {checkpoint_dir}"
+    return f"python pretrain_vae_gw.py --env {env} --stages {stages}{preset}{extra}{cd}"
+
+
+def load_pretrained(
+    path: Path,
+    kind: str,
+    env: str,
+    stages: str,
+    checkpoint_dir: str = "checkpoints",
+    task: str = "push_green",
+    extra: str = "",
+) -> dict:
+    """A checkpoint of pretrain_vae_gw.py, checked against ``kind`` and ``env``; when it is missing, the
+    error gives the command that makes it (on RoboDesk, the whole pipeline)."""
+    make = pretrain_command(env, checkpoint_dir, stages, extra)
+    if not path.is_file():
+        if env == "robodesk":
+            cd = "" if checkpoint_dir == "checkpoints" else f" --checkpoint-dir {checkpoint_dir}"
+            raise UsageError(
+                f"no {kind} checkpoint at {path}: "
+                + ROBODESK_PIPELINE.format(tasks=ROBODESK_TASKS, task=task, cd=cd)
+            )
+        raise UsageError(f"no {kind} checkpoint at {path}; make it with `{make}`")
+    ckpt = read_checkpoint(path, make)
+    if ckpt.get("kind") != kind:
+        raise UsageError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected {kind!r}")
+    if ckpt.get("env") != env:
+        raise UsageError(
+            f"{path} was made for env {ckpt.get('env')!r}, but this run is for env {env!r}; "
+            f"make a matching one with `{make}`"
+        )
+    return ckpt
 
 
 # --------------------------------------------------------------------------------------------------
@@ -1162,7 +1231,7 @@ def make_optimizers(agent: Agent, args: Args) -> dict:
 
 
 # --------------------------------------------------------------------------------------------------
-# Training loop (Algorithm 1)
+# Training loop (Algorithm 2)
 # --------------------------------------------------------------------------------------------------
 def evaluate_checkpoint(agent: Agent, vaes: FrozenVAEs, args: Args, ref) -> dict:
     """--eval-only: the modality ablation of a trained agent (paper section "Modality Ablation
@@ -1188,8 +1257,8 @@ def main(args: Args) -> dict:
         torch.set_num_threads(args.torch_threads)
     dev = torch.device(args.device)
     ck_root = Path(args.checkpoint_dir) / args.env
-    vae_path = Path(args.vae_checkpoint) if args.vae_checkpoint else ck_root / "vae.pt"
-    vaes = load_vaes(args.env, vae_path).to(dev)
+    vae_path = pretrained_paths(args.checkpoint_dir, args.env, {"vae.pt": args.vae_checkpoint})["vae.pt"]
+    vaes = load_vaes(args.env, vae_path, args.checkpoint_dir, args.task).to(dev)
     model_name = "gw" if args.loss_preset == "gw" else "clip"  # GW-Dreamer or CLIP-Dreamer, end to end
     task = "" if args.env == "simple_shapes" else f"_{args.task}"
     run_name = f"{args.exp_name}_{model_name}_{args.env}{task}_s{args.seed}"

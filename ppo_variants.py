@@ -1,7 +1,7 @@
 """PPO, VAE-PPO, CLIP-PPO and GW-PPO: the model-free baselines of the paper, in one CleanRL-style file.
 
 Paper: section "Results / Comparison with baselines" (the paper trained them with stable-baselines3; this
-is our own PPO, with the settings of the group's GW-PPO on Simple Shapes, PAPER_NOTES).
+is our own PPO, with the settings of the group's GW-PPO on Simple Shapes, docs/paper_readings.md).
 
     python pretrain_vae_gw.py --env simple_shapes --cpu-preset      # VAEs + GW (for vae / gw)
     python pretrain_vae_gw.py --env simple_shapes --stages gw --loss-preset clip --cpu-preset   # clip
@@ -48,7 +48,10 @@ class Args:
     env: Literal["simple_shapes", "robodesk"] = "simple_shapes"
     """environment"""
     task: str = "push_green"
-    """RoboDesk task (ignored for Simple Shapes)"""
+    """RoboDesk task (ignored for Simple Shapes): one of open_slide, open_drawer, push_green, stack,
+    upright_block_off_table, flat_block_in_bin, flat_block_in_shelf, lift_upright_block, lift_ball
+    (RoboDesk's core tasks), push_blue, push_red, flat_block_off_table, ball_off_table,
+    upright_block_in_bin, ball_in_bin, upright_block_in_shelf, ball_in_shelf, lift_flat_block"""
     variant: Literal["raw", "vae", "clip", "gw"] = "gw"
     """raw: PPO on image + attributes; vae: VAE-PPO; clip: CLIP-PPO; gw: GW-PPO"""
     seed: int = 1
@@ -68,7 +71,7 @@ class Args:
     gw_checkpoint: str | None = None
     """GW or CLIP-like checkpoint (default <checkpoint_dir>/<env>/gw.pt for gw, clip.pt for clip)"""
 
-    # PPO (the group's GW-PPO settings on Simple Shapes, PAPER_NOTES; CleanRL's algorithm)
+    # PPO (the group's GW-PPO settings on Simple Shapes, docs/paper_readings.md; CleanRL's algorithm)
     total_steps: int = 1_000_000
     """environment steps"""
     num_envs: int = 2
@@ -105,7 +108,7 @@ class Args:
     """divide rewards by a running std of the discounted return (stable-baselines3's VecNormalize,
     CleanRL's NormalizeReward): Simple Shapes rewards of -5 to -40 per step give values near -250 that a
     64-unit critic fits slowly; measured: 0.68 normalised return after 20,480 steps with it, 0.15
-    without (README)"""
+    without (docs/ppo_variants.md)"""
     frame_stack: int = 4
     """observations stacked as the policy input"""
     hidden: int = 64
@@ -113,7 +116,7 @@ class Args:
 
     # environments
     render_quality: Literal["faithful", "fast"] = "faithful"
-    """RoboDesk image quality (fast: CPU experiments only, see the README)"""
+    """RoboDesk image quality (fast: CPU experiments only, docs/environments.md)"""
     episode_length: int = 2000
     """RoboDesk episode length in physics-control repeats (paper: 2000, i.e. 500 agent steps)"""
 
@@ -142,7 +145,6 @@ class Args:
     """modality removed at evaluation: clip/gw set alpha to (0, 1) / (1, 0), raw/vae zero the input"""
 
 
-PRETRAIN = "python pretrain_vae_gw.py --env {env}"
 # Simulator frames per agent step. The paper counts RoboDesk "environment steps" in frames ("2,000
 # environment steps but with an action repetition of 4 steps, leading to 500 chosen actions"), so step
 # counts (--total-steps, criteria, logs) are frames there; Simple Shapes has no action repeat.
@@ -234,21 +236,6 @@ class GlobalWorkspace(nn.Module):
         return torch.tanh(alpha_v * self.e["v"](u_v) + alpha_attr * self.e["attr"](u_attr))
 
 
-def load_pretrained(path: Path, kind: str, env: str, stage: str, extra: str = "") -> dict:
-    make = PRETRAIN.format(env=env) + f" --stages {stage}{extra}"
-    if not path.is_file():
-        raise UsageError(f"no {kind} checkpoint at {path}; make it with `{make}`")
-    ckpt = read_checkpoint(path, make)
-    if ckpt.get("kind") != kind:
-        raise UsageError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected {kind!r}")
-    if ckpt.get("env") != env:
-        raise UsageError(
-            f"{path} was made for env {ckpt.get('env')!r}, but this run is for env {env!r}; "
-            f"make a matching one with `{make}`"
-        )
-    return ckpt
-
-
 class Observer(nn.Module):
     """Observation dict -> the variant's policy input for one frame, with a modality optionally removed.
 
@@ -297,19 +284,24 @@ class Observer(nn.Module):
 
 def load_observer(args: Args) -> tuple[Observer, dict]:
     """The frozen part of the variant, and the paths/fingerprint that tie an agent checkpoint to it."""
-    ck_root = Path(args.checkpoint_dir) / args.env
     if args.variant == "raw":
         return Observer(args.env, "raw", None, None), {"fingerprint": 0.0, "paths": []}
-    vae_path = Path(args.vae_checkpoint) if args.vae_checkpoint else ck_root / "vae.pt"
-    vae = load_pretrained(vae_path, "vae", args.env, "collect vae")
+    wanted = {"vae.pt": args.vae_checkpoint}
+    if args.variant in ("clip", "gw"):
+        wanted[f"{args.variant}.pt"] = args.gw_checkpoint
+    pre = pretrained_paths(args.checkpoint_dir, args.env, wanted)
+    vae_path = pre["vae.pt"]
+    stages = "collect vae" if args.variant == "vae" else "collect vae gw"
+    extra = " --loss-preset clip" if args.variant == "clip" else ""
+    vae = load_pretrained(vae_path, "vae", args.env, stages, args.checkpoint_dir, args.task, extra)
     gw, paths = None, [str(vae_path)]
     if args.variant in ("clip", "gw"):
-        gw_path = Path(args.gw_checkpoint) if args.gw_checkpoint else ck_root / f"{args.variant}.pt"
-        gw = load_pretrained(gw_path, "gw", args.env, "gw", f" --loss-preset {args.variant}")
+        gw_path = pre[f"{args.variant}.pt"]
+        gw = load_pretrained(gw_path, "gw", args.env, "gw", args.checkpoint_dir, args.task, extra)
         if gw.get("preset") != args.variant:
             raise UsageError(
                 f"{gw_path} is a {gw.get('preset')!r} model but --variant is {args.variant!r}; make one with "
-                f"`{PRETRAIN.format(env=args.env)} --stages gw --loss-preset {args.variant}`"
+                f"`{pretrain_command(args.env, args.checkpoint_dir, 'gw', f' --loss-preset {args.variant}')}`"
             )
         paths.append(str(gw_path))
     try:
@@ -419,6 +411,86 @@ class Agent(nn.Module):
     def act_greedy(self, x: dict[str, torch.Tensor]) -> torch.Tensor:
         out = self.actor(self.features(x))
         return out.argmax(-1) if self.discrete else out
+
+
+# --------------------------------------------------------------------------------------------------
+# Pre-trained VAEs and GW (the same block in every agent script): where they are read from, and what to
+# run when they are missing. A Simple Shapes VAE + GW made by `pretrain_vae_gw.py --env simple_shapes
+# --cpu-preset` ships in envs/pretrained/ so the main job runs on a fresh clone; checkpoints of your own
+# under --checkpoint-dir always win.
+BUNDLED = Path(__file__).resolve().parent / "envs" / "pretrained"
+ROBODESK_TASKS = "push_green open_slide open_drawer upright_block_off_table flat_block_in_bin"
+# The RoboDesk pipeline, at the CPU scale of docs/environments.md (times measured on a 2-core CPU) or at
+# the paper's scale (times of docs/pretrain_vae_gw.md: one CPU core collecting, one H100 training).
+ROBODESK_PIPELINE = """the RoboDesk agents read the frozen VAEs and GW of pretrain_vae_gw.py; make them first.
+  CPU scale (a GW that runs end to end, too small for control; docs/environments.md):
+    python pretrain_vae_gw.py --env robodesk --stages collect --n-samples 36000 --render-quality fast \\
+        --tasks {tasks}{cd}   # 12 min on 2 cores
+    python pretrain_vae_gw.py --env robodesk --stages vae gw --tasks {tasks}{cd} \\
+        --vae-width 64 --vae-steps 3000 --vae-batch-size 128 --vae-lr-v 1e-3 --vae-lr-attr 3e-3 \\
+        --vae-lr-start-end 1e-3 --beta-attr 0.005 --attr-updates-per-step 2 \\
+        --gw-steps 6000 --gw-batch-size 256 --gw-lr 1e-3 --gw-lr-start-end 1e-4   # 21 min on 2 cores
+    then this command with --render-quality fast
+  paper scale (GPU): python pretrain_vae_gw.py --env robodesk --task {task}{cd}
+    (2M samples: 11 h of collection on one core with --render-quality fast, 190 h faithful; then
+    the visual VAE 30 h, the attribute VAE 35 min and the GW 1.5 h on one H100)"""
+
+
+def pretrained_paths(checkpoint_dir: str, env: str, wanted: dict[str, str | None]) -> dict[str, Path]:
+    """{file name: path} for the pre-trained checkpoints a run needs: the flag's path when given, else
+    <checkpoint_dir>/<env>/<name>, else, when that folder holds none of them, the bundled copies."""
+    folder = Path(checkpoint_dir) / env
+    paths = {name: Path(given) if given else folder / name for name, given in wanted.items()}
+    defaults = [name for name, given in wanted.items() if not given]
+    if (
+        defaults
+        and not any((folder / name).is_file() for name in defaults)
+        and all((BUNDLED / env / name).is_file() for name in defaults)
+    ):
+        paths |= {name: BUNDLED / env / name for name in defaults}
+        print(
+            f"[pretrained] {folder} holds no {' / '.join(defaults)}: using the bundled copies in "
+            f"envs/pretrained/{env}/ (made by `python pretrain_vae_gw.py --env {env} --cpu-preset`)"
+        )
+    return paths
+
+
+def pretrain_command(env: str, checkpoint_dir: str, stages: str, extra: str = "") -> str:
+    """The pretrain_vae_gw.py command that makes a missing checkpoint, with the user's --checkpoint-dir."""
+    preset = " --cpu-preset" if env == "simple_shapes" else ""  # the scale that runs on a CPU
+    cd = "" if checkpoint_dir == "checkpoints" else f" --checkpoint-dir {checkpoint_dir}"
+    return f"python pretrain_vae_gw.py --env {env} --stages {stages}{preset}{extra}{cd}"
+
+
+def load_pretrained(
+    path: Path,
+    kind: str,
+    env: str,
+    stages: str,
+    checkpoint_dir: str = "checkpoints",
+    task: str = "push_green",
+    extra: str = "",
+) -> dict:
+    """A checkpoint of pretrain_vae_gw.py, checked against ``kind`` and ``env``; when it is missing, the
+    error gives the command that makes it (on RoboDesk, the whole pipeline)."""
+    make = pretrain_command(env, checkpoint_dir, stages, extra)
+    if not path.is_file():
+        if env == "robodesk":
+            cd = "" if checkpoint_dir == "checkpoints" else f" --checkpoint-dir {checkpoint_dir}"
+            raise UsageError(
+                f"no {kind} checkpoint at {path}: "
+                + ROBODESK_PIPELINE.format(tasks=ROBODESK_TASKS, task=task, cd=cd)
+            )
+        raise UsageError(f"no {kind} checkpoint at {path}; make it with `{make}`")
+    ckpt = read_checkpoint(path, make)
+    if ckpt.get("kind") != kind:
+        raise UsageError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected {kind!r}")
+    if ckpt.get("env") != env:
+        raise UsageError(
+            f"{path} was made for env {ckpt.get('env')!r}, but this run is for env {env!r}; "
+            f"make a matching one with `{make}`"
+        )
+    return ckpt
 
 
 # --------------------------------------------------------------------------------------------------

@@ -42,7 +42,10 @@ class Args:
     """stages to run, in this order"""
     task: str = "push_green"
     """RoboDesk task whose expert collects the expert data, unless --tasks is given (ignored for Simple
-    Shapes)"""
+    Shapes): one of open_slide, open_drawer, push_green, stack, upright_block_off_table,
+    flat_block_in_bin, flat_block_in_shelf, lift_upright_block, lift_ball (RoboDesk's core tasks), push_blue,
+    push_red, flat_block_off_table, ball_off_table, upright_block_in_bin, ball_in_bin, upright_block_in_shelf,
+    ball_in_shelf, lift_flat_block"""
     tasks: tuple[str, ...] = ()
     """RoboDesk tasks for a multi-task dataset (one GW for all of them, paper section "Unique Global
     Workspace for all tasks"): each task's scripted expert (envs/robodesk_experts.py) collects an equal
@@ -84,7 +87,7 @@ class Args:
     shard_size: int = 50_000
     """samples per compressed shard"""
     render_quality: Literal["faithful", "fast"] = "faithful"
-    """RoboDesk image quality of the collected data (fast: CPU experiments only, see README)"""
+    """RoboDesk image quality of the collected data (fast: CPU experiments only, docs/environments.md)"""
 
     # vae (appendix Table "VAE training")
     vae_steps: int = 500_000
@@ -171,7 +174,7 @@ class Args:
 # lost the position (6.7 px error); beta_attr 0.005 with 4 updates per step keeps all of them.
 # 20,000 GW steps (3 min here) rather than 60,000 (10 min): GW-Dreamer at --entropy-coef 3e-3 reached its
 # return criterion in 4 of 6 seeds on the shorter GW (4 of 5 on the longer), and the 7 minutes saved are
-# what let those seeds finish within the issue's 30 minutes, pre-training included (README).
+# what let those seeds finish within the issue's 30 minutes, pre-training included (docs/experiments.md).
 CPU_PRESET = {
     "n_samples": 60_000,
     "vae_width": 64,
@@ -207,7 +210,7 @@ def keep_freed_memory() -> None:
 ENV_SPECS = {
     # image side, attribute size, VAE latent size (u_v, u_attr), GW latent size z, GW hidden width
     "simple_shapes": {"image": 32, "attr": 11, "latent": 10, "z": 10, "gw_hidden": 64},
-    # z: 76 per the GW and world-model tables (the text's 60 contradicts them; PAPER_NOTES)
+    # z: 76 per the GW and world-model tables (the text's 60 contradicts them; docs/paper_readings.md)
     "robodesk": {"image": 64, "attr": 76, "latent": 40, "z": 76, "gw_hidden": 512},
 }
 
@@ -758,10 +761,10 @@ def conv_block(cin: int, cout: int, transpose: bool = False, stride: int = 2) ->
 
 class VisualVAE(nn.Module):
     """Conv encoder (kernel 4, stride 2, BatchNorm, ReLU) to FC_{2 x latent}; decoder FC_{8x8xwidth},
-    transposed convolutions up to the image size, then Conv_3 - Sigmoid (an RGB image; PAPER_NOTES).
-    Simple Shapes: channels 128-256-512-1024 (32 -> 2 pixels); RoboDesk: 64-128-256-512-1024 (64 -> 2).
-    The decoder's last transposed convolution keeps the resolution (stride 1) so the listed layers end
-    at the image size."""
+    transposed convolutions up to the image size, then Conv_3 - Sigmoid (an RGB image;
+    docs/paper_readings.md). Simple Shapes: channels 128-256-512-1024 (32 -> 2 pixels); RoboDesk:
+    64-128-256-512-1024 (64 -> 2). The decoder's last transposed convolution keeps the resolution
+    (stride 1) so the listed layers end at the image size."""
 
     def __init__(self, image: int, latent: int, width: int = 1024):
         super().__init__()

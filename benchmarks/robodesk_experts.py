@@ -1,7 +1,7 @@
 """Success counts of the scripted RoboDesk experts (envs/robodesk_experts.py): for each task, N episodes
 on seeds 0..N-1 without images, the number of the 500 agent steps in which the task's success criterion
-holds (mean +- s.e.m.), the episodes with any success, and the time taken. The README's expert table is
-this script's output.
+holds (mean +- s.e.m.), the episodes with any success, and the time taken. The expert table of
+docs/environments.md is this script's output.
 
     MUJOCO_GL=egl python benchmarks/robodesk_experts.py --episodes 20
     MUJOCO_GL=egl python benchmarks/robodesk_experts.py --tasks open_drawer --episodes 20 --per-episode

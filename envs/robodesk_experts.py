@@ -89,7 +89,7 @@ def _push_off_right(obj: str):
     stalls about 7 cm up when the fingers meet the desk, hence the loose tolerance there). The tall
     upright block tips over under the push (friction beats its 2.3 cm half-width); the left end is read
     from the box's current orientation, so the push goes on against the lying block. Pushing at the
-    block's mid-height instead lost the tipped block in 11 of 20 episodes (README)."""
+    block's mid-height instead lost the tipped block in 11 of 20 episodes (docs/environments.md)."""
 
     def plan(env):
         p = env._xpos(obj)
@@ -112,7 +112,7 @@ def _drawer(env):
     the hand as far from the shoulder as the task allows: the bar sits about 40 cm from it, and nearer
     targets drive the elbow into its -3.07 rad limit, where the local inverse kinematics stalls.
     Straddling the bar with open fingers and gripping it (5 of 20 episodes) failed that way, as does
-    pulling straight back. README: 17 of 20 episodes succeed."""
+    pulling straight back. docs/environments.md: 17 of 20 episodes succeed."""
     bar = env.data.geom_xpos[env.model.geom("drawer_handle").id] + [0.0, -0.039, 0.0]
     slot = bar + [0.0, 0.055, 0.0]
     return [
@@ -128,7 +128,7 @@ def _flat_block_to_bin(env):
     (0.40), then go over it, come down behind it (+y) and push it toward the robot (-y) off the front
     edge, where it drops into the bin. When the upright block stands close behind, the push point
     moves along the flat block, away from it. The hand cannot always come down behind the block (wrist
-    pitch at its limit): README, 16 of 20 episodes succeed."""
+    pitch at its limit): docs/environments.md, 16 of 20 episodes succeed."""
     p, upright = env._xpos("flat_block"), env._xpos("upright_block")
     z = p[2] + 0.03  # fingertips about 5 cm below the end-effector site: just above the desk
     side = np.sign(BIN_X - p[0]) or 1.0  # push toward the bin's x from this end

@@ -611,7 +611,7 @@ def sample_dataset(n: int, seed: int = 0, wide_share: float = 0.0) -> dict[str, 
 
 def reference_returns(episodes: int = 1_000, seed: int = 10_000) -> tuple[float, float]:
     """Mean returns of a uniformly random policy and of ``greedy_action`` over ``episodes`` episodes:
-    the 0 and the 1 of the normalised return every agent script logs (PAPER_NOTES)."""
+    the 0 and the 1 of the normalised return every agent script logs (docs/paper_readings.md)."""
     out = []
     for policy in ("random", "greedy"):
         env = SimpleShapesVectorEnv(episodes)

@@ -71,6 +71,23 @@ def interrupt_run(script: str, cwd: Path, agent: Path, *args: str) -> tuple[dict
 # Small dreamer_baseline.py widths for tests (its --size presets are 2M parameters and up).
 DREAMER_SMALL = dict(deter=64, hidden=32, units=32, cnn_depth=4, classes=4)
 
+# The smallest agent runs of each script: a few updates, one short final evaluation, no periodic saves.
+GW_TINY = (
+    "--learning-starts 20 --batch-size 2 --batch-length 4 --imag-horizon 3 --train-ratio 10 --eval-episodes 1"
+    " --video-every 0 --log-every 1000 --eval-every 100000 --save-every 100000 --total-steps 40"
+).split()
+DREAMER_TINY = [a for k, v in DREAMER_SMALL.items() for a in (f"--{k.replace('_', '-')}", str(v))]
+AGENT_TINY = {
+    "gw_dreamer.py": GW_TINY,
+    "gw_dreamer_e2e.py": [*GW_TINY, "--gw-batch-size", "8"],
+    "dreamer_baseline.py": [*DREAMER_TINY, *GW_TINY],
+    "ppo_variants.py": (
+        "--variant gw --num-envs 2 --num-steps 16 --update-epochs 1 --minibatch-size 16 --eval-episodes 1"
+        " --total-steps 32"
+    ).split(),
+}
+AGENT_SCRIPTS = tuple(AGENT_TINY)
+
 
 def tiny_agent_args(module, pretrained, **kw):
     """``module.Args`` (gw_dreamer, gw_dreamer_e2e or dreamer_baseline) with small batches on the

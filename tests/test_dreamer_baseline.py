@@ -114,7 +114,11 @@ def test_dropping_a_modality_zeroes_its_input(pretrained):
     assert torch.equal(raw(image, attr, "vision")["attr"], attr)
     assert raw(image, attr, "attr")["attr"].abs().sum() == 0
     vae = D.Observer(
-        "simple_shapes", "vae", D.load_vae(pretrained[0] / "ck" / "simple_shapes" / "vae.pt", "simple_shapes")
+        "simple_shapes",
+        "vae",
+        D.load_pretrained(
+            pretrained[0] / "ck" / "simple_shapes" / "vae.pt", "vae", "simple_shapes", "collect vae"
+        ),
     )
     full, no_attr, no_vision = (
         vae(image, attr)["x"],
@@ -282,8 +286,11 @@ def test_imagination_gradients_follow_the_actor_gradient_mode(pretrained):
 
 
 def test_bad_input_is_explained(tmp_path, pretrained):
-    with pytest.raises(D.UsageError, match="python pretrain_vae_gw.py --env simple_shapes"):
-        D.main(small_args(pretrained, obs="vae", checkpoint_dir=str(tmp_path)))
+    missing = dict(checkpoint_dir=str(tmp_path), vae_checkpoint=str(tmp_path / "none.pt"))
+    make = "pretrain_vae_gw.py --env simple_shapes --stages collect vae --cpu-preset"
+    make += f" --checkpoint-dir {tmp_path}`"
+    with pytest.raises(D.UsageError, match=f"no vae checkpoint at .*none.pt; make it with `python {make}"):
+        D.main(small_args(pretrained, obs="vae", **missing))
     rd_vae = str(pretrained[0] / "ck" / "simple_shapes" / "vae.pt")
     with pytest.raises(ValueError, match="made for env 'simple_shapes'.*'robodesk'"):
         D.main(small_args(pretrained, env="robodesk", obs="vae", vae_checkpoint=rd_vae))

@@ -122,8 +122,11 @@ def test_clip_checkpoint_makes_clip_dreamer(pretrained):
 
 
 def test_missing_or_mismatched_checkpoints_are_explained(pretrained, pretrained_robodesk, tmp_path):
-    with pytest.raises(G.UsageError, match="python pretrain_vae_gw.py --env simple_shapes"):
-        G.main(G.Args(checkpoint_dir=str(tmp_path)))
+    # (no VAE given and none under --checkpoint-dir: the bundled one, tests/test_bundled_pretrained.py)
+    make = "pretrain_vae_gw.py --env simple_shapes --stages collect vae gw --cpu-preset"
+    make += f" --checkpoint-dir {tmp_path}"
+    with pytest.raises(G.UsageError, match=f"no vae checkpoint at .*none.pt; make it with `python {make}`"):
+        G.main(G.Args(checkpoint_dir=str(tmp_path), vae_checkpoint=str(tmp_path / "none.pt")))
     rd_gw = pretrained_robodesk[0] / "ck" / "robodesk" / "gw.pt"
     with pytest.raises(ValueError, match="made for env 'robodesk'.*'simple_shapes'"):
         G.main(ss_args(pretrained, gw_checkpoint=str(rd_gw)))

@@ -234,10 +234,10 @@ def test_gw_learning_rate_follows_the_one_cycle_table():
 
 
 def test_missing_checkpoints_are_explained(pretrained, pretrained_robodesk, tmp_path):
-    with pytest.raises(
-        E.UsageError, match="python pretrain_vae_gw.py --env simple_shapes --stages collect vae"
-    ):
-        E.main(E.Args(checkpoint_dir=str(tmp_path)))
+    make = "pretrain_vae_gw.py --env simple_shapes --stages collect vae --cpu-preset"
+    make += f" --checkpoint-dir {tmp_path}"
+    with pytest.raises(E.UsageError, match=f"no vae checkpoint at .*none.pt; make it with `python {make}`"):
+        E.main(E.Args(checkpoint_dir=str(tmp_path), vae_checkpoint=str(tmp_path / "none.pt")))
     rd_vae = pretrained_robodesk[0] / "ck" / "robodesk" / "vae.pt"
     with pytest.raises(ValueError, match="made for env 'robodesk'.*'simple_shapes'"):
         E.main(ss_args(pretrained, vae_checkpoint=str(rd_vae)))

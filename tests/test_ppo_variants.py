@@ -177,10 +177,12 @@ def test_reward_normaliser_scales_by_the_return_std():
 
 
 def test_errors_are_explained(pretrained, pretrained_robodesk, tmp_path):
-    with pytest.raises(
-        PPO.UsageError, match="python pretrain_vae_gw.py --env simple_shapes --stages collect vae"
-    ):
-        PPO.main(PPO.Args(variant="vae", checkpoint_dir=str(tmp_path)))
+    make = "pretrain_vae_gw.py --env simple_shapes --stages collect vae --cpu-preset"
+    make += f" --checkpoint-dir {tmp_path}"
+    with pytest.raises(PPO.UsageError, match=f"no vae checkpoint at .*none.pt; make it with `python {make}`"):
+        PPO.main(
+            PPO.Args(variant="vae", checkpoint_dir=str(tmp_path), vae_checkpoint=str(tmp_path / "none.pt"))
+        )
     ck = pretrained[0] / "ck"
     with pytest.raises(ValueError, match="is a 'clip' model but --variant is 'gw'"):
         PPO.main(

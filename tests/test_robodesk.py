@@ -1,5 +1,6 @@
 """RoboDesk port: tasks, rewards, inverse kinematics, observations, image pipeline, errors."""
 
+import importlib
 import importlib.util
 from pathlib import Path
 
@@ -44,6 +45,20 @@ def with_objects(env, task, seed=0, **moves):
 
 def test_task_list_matches_the_original():
     assert len(CORE_TASKS) == 9 and len(EXTRA_TASKS) == 9 and len(set(TASKS)) == 18
+
+
+@pytest.mark.parametrize(
+    "script", ["gw_dreamer", "gw_dreamer_e2e", "dreamer_baseline", "ppo_variants", "pretrain_vae_gw"]
+)
+def test_every_script_lists_the_valid_tasks_in_its_help(script, capsys):
+    import tyro
+
+    module = importlib.import_module(script)
+    with pytest.raises(SystemExit):
+        tyro.cli(module.Args, args=["--help"])
+    help_text = " ".join(capsys.readouterr().out.replace("│", " ").split())
+    for task in TASKS:
+        assert task in help_text, task
 
 
 def test_unknown_task_and_bad_arguments_raise_clear_errors():

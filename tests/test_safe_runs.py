@@ -11,26 +11,18 @@ import textwrap
 
 import pytest
 import torch
-from conftest import DREAMER_SMALL, ROOT, TINY_PRETRAIN, interrupt_cli, run_cli, run_script
+from conftest import (
+    AGENT_SCRIPTS,
+    AGENT_TINY,
+    GW_TINY,
+    ROOT,
+    TINY_PRETRAIN,
+    interrupt_cli,
+    run_cli,
+    run_script,
+)
 
 import pretrain_vae_gw as P
-
-# The smallest agent runs of each script: a few updates, one short final evaluation, no periodic saves.
-GW_TINY = (
-    "--learning-starts 20 --batch-size 2 --batch-length 4 --imag-horizon 3 --train-ratio 10 --eval-episodes 1"
-    " --video-every 0 --log-every 1000 --eval-every 100000 --save-every 100000 --total-steps 40"
-).split()
-DREAMER_TINY = [a for k, v in DREAMER_SMALL.items() for a in (f"--{k.replace('_', '-')}", str(v))]
-AGENT_TINY = {
-    "gw_dreamer.py": GW_TINY,
-    "gw_dreamer_e2e.py": [*GW_TINY, "--gw-batch-size", "8"],
-    "dreamer_baseline.py": [*DREAMER_TINY, *GW_TINY],
-    "ppo_variants.py": (
-        "--variant gw --num-envs 2 --num-steps 16 --update-epochs 1 --minibatch-size 16 --eval-episodes 1"
-        " --total-steps 32"
-    ).split(),
-}
-AGENT_SCRIPTS = tuple(AGENT_TINY)
 
 
 def agent_cli(script: str, pretrained, cwd, *extra: str, checkpoint=None) -> subprocess.CompletedProcess:
@@ -313,26 +305,3 @@ def test_stage_identity_covers_the_data_and_the_vaes():
     assert ident != P.stage_identity(P.Args(env="simple_shapes", wide_share=0.5).resolve(), "gw", 1.0)
     assert ident != P.stage_identity(P.Args(env="simple_shapes", gw_lr=1e-3).resolve(), "gw", 1.0)
     assert ident == P.stage_identity(P.Args(env="simple_shapes", log_every=7).resolve(), "gw", 1.0)
-
-
-SAFE_RUN_BLOCK = tuple(
-    "UsageError require atomic_save read_checkpoint ensure_writable claim_outputs setting_changes StopRequest"
-    " cli".split()
-)
-
-
-def test_the_safe_run_block_is_the_same_in_every_script():
-    """Each script carries its own copy (one file per algorithm); the copies must not drift apart."""
-    import ast
-
-    scripts = (*AGENT_SCRIPTS, "pretrain_vae_gw.py")
-    copies = {}
-    for script in scripts:
-        text = (ROOT / script).read_text()
-        for node in ast.parse(text).body:
-            if isinstance(node, (ast.FunctionDef, ast.ClassDef)) and node.name in SAFE_RUN_BLOCK:
-                copies.setdefault(node.name, {})[script] = ast.get_source_segment(text, node)
-    for name in SAFE_RUN_BLOCK:
-        expected = scripts if name != "claim_outputs" else AGENT_SCRIPTS  # pre-training claims per stage
-        assert set(copies[name]) == set(expected), (name, set(copies[name]))
-        assert len(set(copies[name].values())) == 1, f"{name} differs between {sorted(copies[name])}"

@@ -1,0 +1,387 @@
+"""The paper's Simple Shapes figures and FLOPs table, drawn from recorded runs.
+
+    python benchmarks/paper_figures.py                       # from the records in docs/results/
+    python benchmarks/paper_figures.py --runs runs --export docs/results   # from TensorBoard runs
+
+Writes to --out (docs/figures/):
+- simple_shapes_curves.png: normalised return of every model, smoothed over 10 episodes, mean ± s.e.m.
+  over seeds, on log-scaled env steps, with the criterion line (the paper's Figure 3, left);
+- simple_shapes_ablation.png: normalised return with both modalities, without vision, without
+  attributes, mean ± s.e.m. over agents (Figure 5, left);
+- simple_shapes_flops.md: env steps and RL training FLOPs to the criterion per model (the FLOPs table);
+- gw_figure2.png: the GW grid of Figure 2 (image, image of the attributes, translation, demi-cycle,
+  fusion) from a Simple Shapes GW checkpoint (the bundled one by default).
+
+Runs are recognised by the default run names of the agent scripts (runs/<name>_s<seed>, e.g.
+gw_dreamer_gw_simple_shapes_s3); a run's modality ablation is read from runs/<run>/eval_drop_<drop>.txt,
+the `[eval]` line of `--eval-only --drop <drop>` (benchmarks/reproduce_simple_shapes.sh writes them).
+"""
+
+import csv
+import math
+import re
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import tyro
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+CRITERION = 0.75  # smoothed normalised return (docs/paper_readings.md)
+SMOOTH = 10  # episodes
+# label, default run name (seed removed), the paper's steps to the criterion (Figure 3, read off the plot)
+MODELS = (
+    ("GW-Dreamer", "gw_dreamer_gw_simple_shapes", "≈ 20,000"),
+    ("GW-Dreamer end-to-end", "gw_dreamer_e2e_gw_simple_shapes", "≈ 50,000"),
+    ("CLIP-Dreamer", "gw_dreamer_clip_simple_shapes", "fails"),
+    ("Dreamer", "dreamer_raw_2m_simple_shapes", "≈ 200,000"),
+    ("VAE-Dreamer", "dreamer_vae_2m_simple_shapes", "≈ 200,000"),
+    ("GW-PPO", "ppo_gw_simple_shapes", "≈ 200,000"),
+    ("VAE-PPO", "ppo_vae_simple_shapes", "≈ 400,000"),
+    ("CLIP-PPO", "ppo_clip_simple_shapes", "fails"),
+    ("PPO", "ppo_raw_simple_shapes", "≈ 300,000"),
+)
+PAPER = {label: paper for label, _, paper in MODELS}
+DROPS = {"none": "both", "vision": "without vision", "attr": "without attributes"}
+RUN_FIELDS = (
+    "model setting seed status criterion_step env_steps_run rl_train_flops wall_min command note".split()
+)
+CURVE_FIELDS = "model setting seed env_step normalised_return".split()
+ABLATION_FIELDS = "model setting seed drop episodes return_mean return_sem normalised_return command".split()
+EVAL_LINE = re.compile(
+    r"\[eval\] drop=(\w+): return (-?[\d.]+) ± ([\d.]+) \(s\.e\.m\., (\d+) episodes\), normalised (-?[\d.]+)"
+)
+
+
+@dataclass
+class Args:
+    results: str = "docs/results"
+    """folder of the committed records (simple_shapes_{runs,curves,ablation}.csv), read unless --runs"""
+    runs: str | None = None
+    """read TensorBoard runs from this folder instead of --results"""
+    export: str | None = None
+    """also write the records the figures are drawn from (CSV) to this folder"""
+    out: str = "docs/figures"
+    """where the figures and the table go"""
+    setting: str = "default"
+    """which setting of the records to draw (the default command's runs)"""
+    gw_checkpoint: str = "envs/pretrained/simple_shapes/gw.pt"
+    """GW of Figure 2 ('' skips it)"""
+    vae_checkpoint: str = "envs/pretrained/simple_shapes/vae.pt"
+    """VAEs of that GW"""
+    caption: str = ""
+    """hardware, torch version and date printed under every figure (default: torch version only)"""
+
+
+# --------------------------------------------------------------------------------------------------
+# Records: from the CSVs, or from TensorBoard event files
+# --------------------------------------------------------------------------------------------------
+def read_csv(path: Path) -> list[dict]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def write_csv(path: Path, rows: list[dict], fields: list[str]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    with open(tmp, "w", newline="") as f:
+        w = csv.DictWriter(f, fields)
+        w.writeheader()
+        w.writerows({k: r.get(k, "") for k in fields} for r in rows)
+    tmp.replace(path)
+
+
+def model_of(run_name: str) -> tuple[str, int] | None:
+    for label, name, _ in MODELS:
+        m = re.fullmatch(re.escape(name) + r"_s(\d+)", run_name)
+        if m:
+            return label, int(m.group(1))
+    return None
+
+
+def read_runs(folder: Path) -> tuple[list[dict], list[dict], list[dict]]:
+    """(runs, curves, ablation) records of every recognised run under ``folder``."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    runs, curves, ablation = [], [], []
+    for run in sorted(p for p in folder.iterdir() if p.is_dir()):
+        known = model_of(run.name)
+        if known is None:
+            continue
+        model, seed = known
+        acc = EventAccumulator(str(run), size_guidance={"scalars": 0, "tensors": 0}).Reload()
+        tags = acc.Tags()["scalars"]
+        if "charts/normalised_return" not in tags:
+            continue
+        episodes = acc.Scalars("charts/normalised_return")
+        curves += [
+            dict(
+                model=model, setting="default", seed=seed, env_step=e.step, normalised_return=f"{e.value:.4f}"
+            )
+            for e in episodes
+        ]
+        crit = acc.Scalars("charts/criterion_step")[0].step if "charts/criterion_step" in tags else None
+        flops = ""
+        if "charts/train_flops" in tags:
+            f = acc.Scalars("charts/train_flops")
+            at = crit if crit is not None else f[-1].step  # FLOPs are logged per interval: interpolate
+            flops = f"{np.interp(at, [e.step for e in f], [e.value for e in f]):.4g}"
+        hyper = ""
+        if "hyperparameters/text_summary" in acc.Tags()["tensors"]:
+            hyper = acc.Tensors("hyperparameters/text_summary")[0].tensor_proto.string_val[0].decode()
+        total = re.search(r"\|total_steps\|(\d+)\|", hyper)
+        last = max(e.step for e in episodes)
+        status = "reached" if crit is not None else "not reached"
+        if crit is None and total and last < int(total.group(1)) * 0.95:
+            status = "cut"  # stopped well before its --total-steps (PPO ends at whole rollouts)
+        walls = [e.wall_time for e in episodes]
+        wall_min = f"{(max(walls) - min(walls)) / 60:.1f}"
+        runs.append(
+            dict(model=model, setting="default", seed=seed, status=status, criterion_step=crit or "")
+            | dict(env_steps_run=last, rl_train_flops=flops, wall_min=wall_min, command=f"runs/{run.name}")
+        )
+        for txt in sorted(run.glob("eval_drop_*.txt")):
+            m = EVAL_LINE.search(txt.read_text())
+            if m:
+                drop, mean, sem, n, norm = m.groups()
+                ablation.append(
+                    dict(model=model, setting="default", seed=seed, drop=drop, episodes=n)
+                    | dict(return_mean=mean, return_sem=sem, normalised_return=norm)
+                    | dict(command=f"runs/{run.name}/{txt.name}")
+                )
+    return runs, curves, ablation
+
+
+# --------------------------------------------------------------------------------------------------
+# Statistics
+# --------------------------------------------------------------------------------------------------
+def mean_sem(values) -> tuple[float, float]:
+    v = np.asarray(list(values), dtype=float)
+    sem = v.std(ddof=1) / math.sqrt(len(v)) if len(v) > 1 else float("nan")
+    return float(v.mean()), float(sem)
+
+
+def smoothed_on_grid(steps: np.ndarray, returns: np.ndarray, grid: np.ndarray) -> np.ndarray:
+    """The 10-episode moving average (the criterion's smoothing) at each grid step: the value of the last
+    episode that ended at or before it (nan before the 10th episode); a run that stopped (at its
+    criterion or its --total-steps) keeps its last value."""
+    order = np.argsort(steps)
+    steps, returns = steps[order], returns[order]
+    csum = np.cumsum(np.insert(returns, 0, 0.0))
+    n = np.arange(1, len(returns) + 1)
+    k = np.minimum(n, SMOOTH)
+    smooth = (csum[n] - csum[n - k]) / k
+    smooth[: SMOOTH - 1] = np.nan
+    idx = np.searchsorted(steps, grid, side="right") - 1
+    return np.where(idx >= 0, smooth[np.clip(idx, 0, None)], np.nan)
+
+
+def flops_table(runs: list[dict], setting: str) -> str:
+    lines = [
+        "| model | reached / run | env steps to the criterion (mean ± s.e.m.)"
+        " | RL training FLOPs to the criterion (mean ± s.e.m.) | paper (steps) |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    for label, _, paper in MODELS:
+        rows = [r for r in runs if r["model"] == label and r["setting"] == setting and r["status"] != "cut"]
+        if not rows:
+            continue
+        hit = [r for r in rows if r["status"] == "reached"]
+        steps = flops = "–"
+        if hit:
+            m, s = mean_sem(int(float(r["criterion_step"])) for r in hit)
+            steps = f"{m:,.0f}" + (f" ± {s:,.0f}" if len(hit) > 1 else "")
+            f_hit = [float(r["rl_train_flops"]) for r in hit if r["rl_train_flops"]]
+            if f_hit:
+                fm, fs = mean_sem(f_hit)
+                flops = f"{fm:.2e}" + (f" ± {fs:.1e}" if len(f_hit) > 1 else "")
+                flops += f" (n = {len(f_hit)})" if len(f_hit) < len(hit) else ""
+        lines.append(f"| {label} | {len(hit)} / {len(rows)} | {steps} | {flops} | {paper} |")
+    mine = [r for r in runs if r["setting"] == setting]
+    finished = {(r["model"], r["seed"]) for r in mine if r["status"] != "cut"}
+    cut = [
+        f"{r['model']} seed {r['seed']}"
+        + (" (then run in full)" if (r["model"], r["seed"]) in finished else "")
+        for r in mine
+        if r["status"] == "cut"
+    ]
+    if cut:
+        lines += ["", "Cut short, not counted: " + ", ".join(cut) + "."]
+    return "\n".join(lines) + "\n"
+
+
+# --------------------------------------------------------------------------------------------------
+# Figures
+# --------------------------------------------------------------------------------------------------
+def plot_curves(curves: list[dict], runs: list[dict], setting: str, path: Path, caption: str) -> list[str]:
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.5, 4.5))
+    drawn = []
+    for label, _, _ in MODELS:
+        mine = [r for r in runs if r["model"] == label and r["setting"] == setting]
+        done = {int(r["seed"]) for r in mine if r["status"] != "cut"}  # a cut run's curve is partial
+        rows = [
+            r for r in curves if r["model"] == label and r["setting"] == setting and int(r["seed"]) in done
+        ]
+        seeds = sorted({int(r["seed"]) for r in rows})
+        if not seeds:
+            continue
+        top = max(int(float(r["env_step"])) for r in rows)
+        grid = np.unique(np.geomspace(100, top, 200).astype(int))
+        per_seed = []
+        for s in seeds:
+            mine = [r for r in rows if int(r["seed"]) == s]
+            steps = np.array([float(r["env_step"]) for r in mine])
+            rets = np.array([float(r["normalised_return"]) for r in mine])
+            per_seed.append(smoothed_on_grid(steps, rets, grid))
+        y = np.array(per_seed)
+        ok = np.isfinite(y).all(axis=0)  # where every seed has its first 10 episodes
+        mean = y[:, ok].mean(axis=0)
+        sem = y[:, ok].std(axis=0, ddof=1) / math.sqrt(len(seeds)) if len(seeds) > 1 else np.zeros_like(mean)
+        reached = sum(
+            1 for r in runs if r["model"] == label and r["setting"] == setting and r["status"] == "reached"
+        )
+        line = ax.plot(grid[ok], mean, label=f"{label} ({reached}/{len(seeds)} reached)")[0]
+        ax.fill_between(grid[ok], mean - sem, mean + sem, color=line.get_color(), alpha=0.2)
+        drawn.append(label)
+    ax.axhline(CRITERION, color="k", ls="--", lw=1, label=f"criterion ({CRITERION})")
+    ax.set_xscale("log")
+    ax.set_xlabel("env steps")
+    ax.set_ylabel("normalised return (smoothed over 10 episodes)")
+    ax.set_title("Simple Shapes: mean ± s.e.m. over seeds")
+    ax.legend(fontsize=8, loc="lower right")
+    fig.text(0.01, 0.01, caption, fontsize=7)
+    fig.tight_layout(rect=(0, 0.03, 1, 1))
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return drawn
+
+
+def plot_ablation(ablation: list[dict], setting: str, path: Path, caption: str) -> list[str]:
+    import matplotlib.pyplot as plt
+
+    labels = [m for m, _, _ in MODELS if any(r["model"] == m and r["setting"] == setting for r in ablation)]
+    fig, ax = plt.subplots(figsize=(max(4.0, 2.2 * len(labels) + 1.5), 4.0))
+    width = 0.8 / len(DROPS)
+    for j, (drop, name) in enumerate(DROPS.items()):
+        means, sems, ns = [], [], []
+        for m in labels:
+            mine = [r for r in ablation if r["model"] == m and r["setting"] == setting]
+            v = [float(r["normalised_return"]) for r in mine if r["drop"] == drop]
+            mu, se = mean_sem(v) if v else (float("nan"), float("nan"))
+            means.append(mu), sems.append(0.0 if math.isnan(se) else se), ns.append(len(v))
+        x = np.arange(len(labels)) + (j - 1) * width
+        ax.bar(x, means, width, yerr=sems, capsize=3, label=name)
+    ax.axhline(CRITERION, color="k", ls="--", lw=1, label=f"criterion ({CRITERION})")
+    ax.set_xticks(np.arange(len(labels)))
+    n_agents = [
+        len({r["seed"] for r in ablation if r["model"] == m and r["setting"] == setting}) for m in labels
+    ]
+    ax.set_xticklabels([f"{m}\n({n} agents)" for m, n in zip(labels, n_agents, strict=True)])
+    ax.set_ylabel("normalised return")
+    ax.set_title("Simple Shapes: modality ablation (mean ± s.e.m.)")
+    ax.legend(fontsize=8)
+    fig.text(0.01, 0.01, caption, fontsize=7)
+    fig.tight_layout(rect=(0, 0.04, 1, 1))
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return labels
+
+
+def figure2(gw_path: Path, vae_path: Path, path: Path, caption: str, n: int = 8, seed: int = 123) -> None:
+    """Rows: images, the images whose attributes are paired with them (incongruent pairs), then the image
+    decoded from z for alpha_v = 0 (translation from the attributes), 1 (demi-cycle) and 0.5 (fusion)."""
+    import matplotlib.pyplot as plt
+
+    import pretrain_vae_gw as P
+    from envs.simple_shapes import sample_dataset
+
+    vae_v, vae_attr, vae_ck = P.load_vaes(vae_path, "simple_shapes")
+    ck = torch.load(gw_path, map_location="cpu", weights_only=False)
+    spec = P.ENV_SPECS["simple_shapes"]
+    gw = P.GlobalWorkspace(spec["latent"], spec["z"], spec["gw_hidden"])
+    gw.load_state_dict(ck["gw"])
+    gw.eval()
+    data = sample_dataset(n, seed=seed)
+    attrs_n = ((data["attr"] - vae_ck["attr_mean"]) / vae_ck["attr_std"]).astype(np.float32)
+    u_v, u_a = P.encode_unimodal(vae_v, vae_attr, data["image"], attrs_n, "cpu")
+    perm = torch.arange(n).roll(1)  # each image with the attributes of another sample
+    rows = [P.images_to_tensor(data["image"], "cpu"), P.images_to_tensor(data["image"][perm.numpy()], "cpu")]
+    with torch.no_grad():
+        for alpha_v in (0.0, 1.0, 0.5):
+            rows.append(vae_v.decode(gw.d["v"](gw.fuse(u_v, u_a[perm], alpha_v, 1 - alpha_v))))
+    names = [
+        "image (vision)",
+        "attributes (as image)",
+        "translation attr→v",
+        "demi-cycle v→v",
+        "fusion 0.5/0.5",
+    ]
+    fig, axes = plt.subplots(len(rows), n, figsize=(n * 0.9 + 1.6, len(rows) * 0.95))
+    for i, row in enumerate(rows):
+        for j in range(n):
+            axes[i, j].imshow(row[j].permute(1, 2, 0).clamp(0, 1).numpy())
+            axes[i, j].set_xticks([]), axes[i, j].set_yticks([])
+        axes[i, 0].set_ylabel(names[i], rotation=0, ha="right", va="center", fontsize=7)
+    fig.suptitle("Simple Shapes GW (Figure 2): incongruent image / attribute pairs", fontsize=9)
+    fig.text(0.01, 0.005, f"{gw_path.name} ({gw_path.parent}); {caption}", fontsize=6)
+    fig.tight_layout(rect=(0.08, 0.03, 1, 0.95))
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def shown(path: str) -> str:
+    """A path as the user would type it: relative to the repository when inside it."""
+    p = Path(path).resolve()
+    return str(p.relative_to(ROOT)) if p.is_relative_to(ROOT) else path
+
+
+def main(args: Args) -> dict:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    for name in ("results", "gw_checkpoint", "vae_checkpoint"):  # the defaults name files of the repository
+        p = Path(getattr(args, name))
+        if getattr(args, name) and not p.is_absolute() and not p.exists() and (ROOT / p).exists():
+            setattr(args, name, str(ROOT / p))
+    if args.runs:
+        runs, curves, ablation = read_runs(Path(args.runs))
+        if not runs:
+            raise SystemExit(f"error: no run of a known model under {args.runs} (names: <model>_s<seed>)")
+    else:
+        res = Path(args.results)
+        runs, curves, ablation = (
+            read_csv(res / f"simple_shapes_{k}.csv") for k in ("runs", "curves", "ablation")
+        )
+    if args.export:
+        records = {"runs": (runs, RUN_FIELDS), "curves": (curves, CURVE_FIELDS)}
+        records["ablation"] = (ablation, ABLATION_FIELDS)
+        for k, (rows, fields) in records.items():
+            write_csv(Path(args.export) / f"simple_shapes_{k}.csv", rows, fields)
+    caption = args.caption or f"torch {torch.__version__}"
+    drawn = plot_curves(curves, runs, args.setting, out / "simple_shapes_curves.png", caption)
+    bars = plot_ablation(ablation, args.setting, out / "simple_shapes_ablation.png", caption)
+    table = flops_table(runs, args.setting)
+    (out / "simple_shapes_flops.md").write_text(
+        "# Simple Shapes: env steps and RL training FLOPs to the return criterion\n\n"
+        f"Drawn by `benchmarks/paper_figures.py` from {shown(args.runs or args.results)} ({caption}).\n\n"
+        + table
+    )
+    if args.gw_checkpoint:
+        figure2(Path(args.gw_checkpoint), Path(args.vae_checkpoint), out / "gw_figure2.png", caption)
+    print(table)
+    print(
+        f"[figures] curves of {', '.join(drawn)}; ablation of {', '.join(bars) or 'none'}; written to {out}/"
+    )
+    return {"curves": drawn, "ablation": bars, "table": table}
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))

@@ -1,0 +1,118 @@
+"""benchmarks/paper_figures.py on synthetic TensorBoard runs whose numbers are known by construction."""
+
+import csv
+from pathlib import Path
+
+from conftest import ROOT, run_script
+from torch.utils.tensorboard import SummaryWriter
+
+PNG = b"\x89PNG\r\n\x1a\n"
+
+
+def fake_run(folder, name, returns, step_every, criterion=None, total=None, flops_per_step=1e9, drops=None):
+    """A run as the agent scripts log it: one normalised return per episode, the criterion step once,
+    cumulative FLOPs every 1,000 steps, the settings table, and --eval-only outputs per dropped modality."""
+    w = SummaryWriter(folder / name)
+    w.add_text("hyperparameters", f"|param|value|\n|-|-|\n|total_steps|{total}|")
+    last = step_every * len(returns)
+    for k in range(0, last + 1, 1000):
+        w.add_scalar("charts/train_flops", k * flops_per_step, k)
+    for i, r in enumerate(returns, 1):
+        w.add_scalar("charts/normalised_return", r, i * step_every)
+    if criterion is not None:
+        w.add_scalar("charts/criterion_step", criterion, criterion)
+    w.close()
+    for drop, norm in (drops or {}).items():
+        line = f"[eval] drop={drop}: return -1.00 ± 0.50 (s.e.m., 50 episodes), normalised {norm:.3f}\n"
+        (folder / name / f"eval_drop_{drop}.txt").write_text(line)
+
+
+def test_figures_and_table_from_event_files(tmp_path):
+    runs = tmp_path / "runs"
+    both = {"none": 0.8, "vision": 0.7, "attr": 0.6}
+    # GW-Dreamer: criteria at 1,000 and 2,000 steps (FLOPs 1e12 and 2e12); one run that never reaches it
+    fake_run(runs, "gw_dreamer_gw_simple_shapes_s1", [0.1] * 9 + [0.8] * 11, 100, 1000, 2000, drops=both)
+    fake_run(runs, "gw_dreamer_gw_simple_shapes_s2", [0.2] * 20, 100, 2000, 2000, drops=both | {"none": 0.9})
+    fake_run(runs, "gw_dreamer_gw_simple_shapes_s3", [0.0] * 20, 100, None, 2000)
+    fake_run(runs, "ppo_gw_simple_shapes_s1", [0.5] * 30, 100, None, 30000)  # cut: 3,000 of 30,000 steps
+    fake_run(runs, "someone_elses_run_s1", [1.0] * 20, 100, 100, 2000)  # not a known model: ignored
+    out, res = tmp_path / "fig", tmp_path / "res"
+    cmd = ["--runs", str(runs), "--out", str(out), "--export", str(res), "--caption", "test machine"]
+    printed = run_script("benchmarks/paper_figures.py", tmp_path, *cmd)
+    for png in ("simple_shapes_curves.png", "simple_shapes_ablation.png", "gw_figure2.png"):
+        data = (out / png).read_bytes()
+        assert data.startswith(PNG) and len(data) > 5_000, png
+    table = (out / "simple_shapes_flops.md").read_text()
+    assert "| GW-Dreamer | 2 / 3 | 1,500 ± 500 | 1.50e+12 ± 5.0e+11 | ≈ 20,000 |" in table
+    assert (
+        "GW-PPO" not in table.split("Cut short")[0] and "GW-PPO seed 1" in table
+    )  # cut: listed, not counted
+    body = table.split("\n", 4)[4]  # the table under its title and source line
+    assert "someone" not in table and body.strip() in printed
+    with open(res / "simple_shapes_runs.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    status = {(r["model"], r["seed"]): r["status"] for r in rows}
+    assert status == {("GW-Dreamer", "1"): "reached", ("GW-Dreamer", "2"): "reached"} | {
+        ("GW-Dreamer", "3"): "not reached",
+        ("GW-PPO", "1"): "cut",
+    }
+    with open(res / "simple_shapes_ablation.csv", newline="") as f:
+        ablation = {(r["seed"], r["drop"]): float(r["normalised_return"]) for r in csv.DictReader(f)}
+    assert ablation == {(s, d): v for s in "12" for d, v in both.items()} | {("2", "none"): 0.9}
+    # The committed records give the same table when read back
+    again = [
+        "--results",
+        str(res),
+        "--out",
+        str(tmp_path / "b"),
+        "--gw-checkpoint",
+        "",
+        "--caption",
+        "test machine",
+    ]
+    again = run_script("benchmarks/paper_figures.py", tmp_path, *again)
+    assert (tmp_path / "b" / "simple_shapes_flops.md").read_text().split("\n", 3)[3] == table.split("\n", 3)[
+        3
+    ]
+    assert "1,500 ± 500" in again
+
+
+def test_the_smoothing_is_the_criterions(tmp_path):
+    import sys
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import numpy as np
+    import paper_figures as PF
+
+    steps = np.arange(1, 21) * 100.0
+    rets = np.r_[np.zeros(10), np.ones(10)]
+    y = PF.smoothed_on_grid(steps, rets, np.array([50.0, 900.0, 1000.0, 1500.0, 2000.0, 5000.0]))
+    assert np.isnan(y[0]) and np.isnan(y[1])  # before the 10th episode
+    assert y[2:].tolist() == [0.0, 0.5, 1.0, 1.0]  # mean of the last 10; held after the run's end
+
+
+def test_the_reproduction_script_runs_valid_commands_only(tmp_path):
+    """Its dry run prints every command; each must parse with its script's own flags (tyro), and the dry
+    run writes nothing."""
+    import importlib
+    import shlex
+    import subprocess
+    import sys
+
+    import tyro
+
+    script = ROOT / "benchmarks" / "reproduce_simple_shapes.sh"
+    env = {"DRY_RUN": "1", "PATH": "/usr/bin:/bin"}
+    out = subprocess.run(["bash", str(script), "2"], cwd=tmp_path, capture_output=True, text=True, env=env)
+    assert out.returncode == 0, out.stderr
+    commands = [shlex.split(line) for line in out.stdout.splitlines()]
+    scripts = [Path(c[1]).name for c in commands]
+    assert scripts.count("gw_dreamer.py") == 2 * 2 * 4  # two models x two seeds x (train + 3 ablations)
+    for s in ("gw_dreamer_e2e.py", "dreamer_baseline.py", "ppo_variants.py", "pretrain_vae_gw.py"):
+        assert s in scripts, s
+    assert scripts[-1] == "paper_figures.py"
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    for c in commands:
+        module = importlib.import_module(Path(c[1]).stem)
+        tyro.cli(module.Args, args=c[2:])  # exits (SystemExit 2) on a flag the script does not have
+    assert list(tmp_path.iterdir()) == []

@@ -1,0 +1,98 @@
+"""Definitions the top-level scripts share on purpose. Each script carries its own copy (one file per
+algorithm, readable alone); these tests fail when one copy drifts from the others, and show the lines."""
+
+import ast
+import difflib
+import functools
+
+import pytest
+from conftest import ROOT
+
+GW, E2E, DREAMER, PPO = "gw_dreamer.py", "gw_dreamer_e2e.py", "dreamer_baseline.py", "ppo_variants.py"
+PRETRAIN = "pretrain_vae_gw.py"
+AGENTS = (GW, E2E, DREAMER, PPO)
+DREAMERS = (GW, E2E, DREAMER)
+
+SHARED = {
+    # Safe runs (docs/safe_runs.md)
+    **dict.fromkeys(
+        "UsageError require atomic_save read_checkpoint ensure_writable setting_changes StopRequest"
+        " cli".split(),
+        (*AGENTS, PRETRAIN),
+    ),
+    "claim_outputs": AGENTS,  # pre-training claims its outputs per stage
+    # Pre-trained checkpoints: the bundled Simple Shapes VAE + GW and the missing-checkpoint messages
+    **dict.fromkeys(
+        "BUNDLED ROBODESK_TASKS ROBODESK_PIPELINE pretrained_paths pretrain_command load_pretrained".split(),
+        AGENTS,
+    ),
+    # Environments, steps and FLOPs
+    **dict.fromkeys("ACTION_REPEAT make_envs step_success count_flops conv_block".split(), AGENTS),
+    # The frozen modules read from pretrain_vae_gw.py's checkpoints
+    **dict.fromkeys("AttrVAE ENV_SPECS FUSION".split(), (GW, E2E, PPO)),
+    "GlobalWorkspace": (GW, PPO),
+    "VisualVAE": (GW, E2E),
+    # DreamerV3's pieces
+    **dict.fromkeys("TwoHot symlog symexp lambda_returns action_for_env".split(), DREAMERS),
+    # The GW-Dreamer world model and actor-critic (frozen GW and end-to-end variants)
+    **dict.fromkeys(
+        "Actor Critic RewardDecoder WorldModel SIZES dream_starts schedule world_model_loss actor_critic_loss"
+        " updates_due mlp final_observations".split(),
+        (GW, E2E),
+    ),
+}
+
+
+@functools.cache
+def definitions(text: str) -> dict[str, str]:
+    """name -> source of every top-level def, class and assignment in ``text``."""
+    lines = text.splitlines()
+    out = {}
+    for node in ast.parse(text).body:
+        if isinstance(node, (ast.FunctionDef, ast.ClassDef)):
+            name = node.name
+        elif isinstance(node, ast.Assign) and isinstance(node.targets[0], ast.Name):
+            name = node.targets[0].id
+        else:
+            continue
+        first = min([node.lineno, *(d.lineno for d in getattr(node, "decorator_list", []))])
+        out[name] = "\n".join(lines[first - 1 : node.end_lineno])
+    return out
+
+
+def top_level(script: str) -> dict[str, str]:
+    return definitions((ROOT / script).read_text())
+
+
+@pytest.mark.parametrize("name", sorted(SHARED))
+def test_shared_definition_is_the_same_in_every_script(name):
+    scripts = SHARED[name]
+    copies = {s: top_level(s).get(name) for s in scripts}
+    missing = [s for s, src in copies.items() if src is None]
+    assert not missing, f"{name} is missing from {missing}"
+    first = scripts[0]
+    for other in scripts[1:]:
+        diff = "\n".join(
+            difflib.unified_diff(
+                copies[first].splitlines(), copies[other].splitlines(), first, other, lineterm="", n=0
+            )
+        )
+        assert not diff, f"{name} has drifted between {first} and {other}:\n{diff}"
+
+
+def test_the_drift_check_sees_a_changed_line(tmp_path, monkeypatch):
+    """The check above compares real source: one changed character in a copy is a failure."""
+    import conftest
+
+    for s in (GW, E2E):
+        (tmp_path / s).write_text((ROOT / s).read_text())
+    text = (tmp_path / E2E).read_text().replace("def symlog(x", "def symlog(y", 1)
+    (tmp_path / E2E).write_text(text)
+    monkeypatch.setattr(conftest, "ROOT", tmp_path)
+    monkeypatch.setitem(globals(), "ROOT", tmp_path)
+    with pytest.raises(AssertionError, match=r"symlog has drifted(.|\n)*-def symlog\(x"):
+        SHARED["symlog"] = (GW, E2E)
+        try:
+            test_shared_definition_is_the_same_in_every_script("symlog")
+        finally:
+            SHARED["symlog"] = DREAMERS
