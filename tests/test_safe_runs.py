@@ -184,6 +184,7 @@ def test_a_damaged_checkpoint_names_its_path_and_the_command_that_remakes_it(gw_
 SIGINT_IN = textwrap.dedent(
     """
     import os, signal, sys
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a terminal (a background job ignores it)
     sys.path.insert(0, {root!r})
     import {module} as m
     real = m.{func}
