@@ -269,12 +269,12 @@ def plot_ablation(ablation: list[dict], setting: str, path: Path, caption: str) 
     fig, ax = plt.subplots(figsize=(max(4.0, 2.2 * len(labels) + 1.5), 4.0))
     width = 0.8 / len(DROPS)
     for j, (drop, name) in enumerate(DROPS.items()):
-        means, sems, ns = [], [], []
+        means, sems = [], []
         for m in labels:
             mine = [r for r in ablation if r["model"] == m and r["setting"] == setting]
             v = [float(r["normalised_return"]) for r in mine if r["drop"] == drop]
             mu, se = mean_sem(v) if v else (float("nan"), float("nan"))
-            means.append(mu), sems.append(0.0 if math.isnan(se) else se), ns.append(len(v))
+            means.append(mu), sems.append(0.0 if math.isnan(se) else se)
         x = np.arange(len(labels)) + (j - 1) * width
         ax.bar(x, means, width, yerr=sems, capsize=3, label=name)
     ax.axhline(CRITERION, color="k", ls="--", lw=1, label=f"criterion ({CRITERION})")

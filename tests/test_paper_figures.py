@@ -1,10 +1,19 @@
 """benchmarks/paper_figures.py on synthetic TensorBoard runs whose numbers are known by construction."""
 
 import csv
+import importlib
+import shlex
+import subprocess
+import sys
 from pathlib import Path
 
+import numpy as np
+import tyro
 from conftest import ROOT, run_script
 from torch.utils.tensorboard import SummaryWriter
+
+sys.path.insert(0, str(ROOT / "benchmarks"))  # the figure script is imported, as a benchmark
+import paper_figures as PF  # noqa: E402
 
 PNG = b"\x89PNG\r\n\x1a\n"
 
@@ -78,12 +87,6 @@ def test_figures_and_table_from_event_files(tmp_path):
 
 
 def test_the_smoothing_is_the_criterions(tmp_path):
-    import sys
-
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    import numpy as np
-    import paper_figures as PF
-
     steps = np.arange(1, 21) * 100.0
     rets = np.r_[np.zeros(10), np.ones(10)]
     y = PF.smoothed_on_grid(steps, rets, np.array([50.0, 900.0, 1000.0, 1500.0, 2000.0, 5000.0]))
@@ -94,13 +97,6 @@ def test_the_smoothing_is_the_criterions(tmp_path):
 def test_the_reproduction_script_runs_valid_commands_only(tmp_path):
     """Its dry run prints every command; each must parse with its script's own flags (tyro), and the dry
     run writes nothing."""
-    import importlib
-    import shlex
-    import subprocess
-    import sys
-
-    import tyro
-
     script = ROOT / "benchmarks" / "reproduce_simple_shapes.sh"
     env = {"DRY_RUN": "1", "PATH": "/usr/bin:/bin"}
     out = subprocess.run(["bash", str(script), "2"], cwd=tmp_path, capture_output=True, text=True, env=env)
@@ -111,7 +107,6 @@ def test_the_reproduction_script_runs_valid_commands_only(tmp_path):
     for s in ("gw_dreamer_e2e.py", "dreamer_baseline.py", "ppo_variants.py", "pretrain_vae_gw.py"):
         assert s in scripts, s
     assert scripts[-1] == "paper_figures.py"
-    sys.path.insert(0, str(ROOT / "benchmarks"))
     for c in commands:
         module = importlib.import_module(Path(c[1]).stem)
         tyro.cli(module.Args, args=c[2:])  # exits (SystemExit 2) on a flag the script does not have
