@@ -34,9 +34,9 @@ import signal
 import sys
 import threading
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import gymnasium as gym
 import numpy as np
@@ -206,6 +206,7 @@ MODEL_SIZES = {
     "40m": {"deter": 4096, "hidden": 384, "units": 512, "cnn_depth": 8, "layers": 2, "classes": 32},
 }
 TABLE_TOTALS = {"2m": 2e6, "12m": 12e6, "40m": 40e6}
+TAG = "dreamer"  # the prefix of every line this script prints
 BLOCKS = 8  # blocks of the block-diagonal GRU
 STOCH = 32  # categorical latents (DreamerV3); their class count is a size setting
 ENV_SPECS = {  # must agree with envs/ and pretrain_vae_gw.py
@@ -574,8 +575,28 @@ class Actor(nn.Module):
         return d.log_prob(a.argmax(-1) if self.discrete else a), d.entropy()
 
 
+class ReturnScale(nn.Module):
+    """DreamerV3's return scale S = EMA of P95 - P5 of the lambda-returns; advantages are divided by
+    max(1, S). Bias-corrected like Adam's moments: the EMA starts at 0, and dividing by its raw value over
+    the first updates would blow the advantages up by up to 100x. Its state is part of the agent."""
+
+    def __init__(self, decay: float = 0.99):
+        super().__init__()
+        self.decay = decay
+        self.register_buffer("ema", torch.zeros((), dtype=torch.float64))
+        self.register_buffer("count", torch.zeros((), dtype=torch.float64))
+
+    def update(self, returns: torch.Tensor) -> torch.Tensor:
+        """Fold in one batch of returns; the debiased scale S (a 0-d tensor, no host sync)."""
+        lo, hi = torch.quantile(returns.detach(), torch.tensor([0.05, 0.95], device=returns.device))
+        self.ema.copy_(self.decay * self.ema + (1 - self.decay) * (hi - lo).double())
+        self.count.add_(1)
+        return self.ema / (1 - self.decay**self.count)
+
+
 class Agent(nn.Module):
-    """World model (encoder, RSSM, decoder, reward and continue heads), actor, critic and slow critic."""
+    """World model (encoder, RSSM, decoder, reward and continue heads), actor, critic, slow critic and
+    the return scale."""
 
     def __init__(self, env: str, spaces: dict[str, tuple[int, ...]], args: Args):
         super().__init__()
@@ -594,6 +615,7 @@ class Agent(nn.Module):
         self.actor = Actor(self.feat_dim, args.units, args.layers, s["actions"], self.discrete, args.unimix)
         self.critic = mlp(self.feat_dim, args.units, 255, args.layers, zero_out=True)
         self.slow_critic = copy.deepcopy(self.critic).requires_grad_(False)
+        self.return_scale = ReturnScale(args.return_norm_decay)
 
     def world_model_parameters(self) -> list[nn.Parameter]:
         parts = (self.encoder, self.rssm, self.decoder, self.reward_head, self.cont_head)
@@ -662,8 +684,8 @@ class Replay:
     def state_dict(self) -> dict:
         """Only the filled part of each stream is saved (a full-size buffer of images is gigabytes)."""
         used = int(np.minimum(self.count, self.cap).max())
-        return {"data": {k: v[:, :used].copy() for k, v in self.data.items()}, "pos": self.pos,
-                "count": self.count, "rng": self.rng.bit_generator.state}  # fmt: skip
+        data = {k: v[:, :used].copy() for k, v in self.data.items()}
+        return {"data": data, "pos": self.pos, "count": self.count, "rng": self.rng.bit_generator.state}
 
     def load_state_dict(self, s: dict) -> None:
         for k, v in s["data"].items():
@@ -710,10 +732,20 @@ def world_model_loss(agent: Agent, batch: dict[str, torch.Tensor], args: Args):
     return total.mean(), terms, (deter, stoch)
 
 
-def imagine(agent: Agent, deter: torch.Tensor, stoch: torch.Tensor, horizon: int, grad: bool):
-    """Dream ``horizon`` steps with the actor from the given states. Returns features (H + 1, N, F),
-    actions (H, N, A), rewards and continue probabilities (H, N) of the dreamt states 1..H. With
-    ``grad`` the rollout is differentiable (dynamics backpropagation for continuous actions)."""
+class Dream(NamedTuple):
+    """An imagined rollout of H steps from N starts: the actor-critic's inputs (H + 1, N, ...), the
+    actions taken (H, N, A), the predicted rewards and continuation probabilities (H, N)."""
+
+    feats: torch.Tensor
+    actions: torch.Tensor
+    rewards: torch.Tensor
+    conts: torch.Tensor
+
+
+def imagine(agent: Agent, deter: torch.Tensor, stoch: torch.Tensor, horizon: int, grad: bool) -> Dream:
+    """Dream ``horizon`` steps with the actor from the given states: features (H + 1, N, F), actions
+    (H, N, A), rewards and continue probabilities (H, N) of the dreamt states 1..H. With ``grad`` the
+    rollout is differentiable (dynamics backpropagation for continuous actions)."""
     with torch.set_grad_enabled(grad):
         feats, actions = [feat_of(deter, stoch)], []
         for _ in range(horizon):
@@ -724,7 +756,7 @@ def imagine(agent: Agent, deter: torch.Tensor, stoch: torch.Tensor, horizon: int
         feats, actions = torch.stack(feats), torch.stack(actions)
         rewards = agent.twohot.mean(agent.reward_head(feats[1:]))
         conts = torch.sigmoid(agent.cont_head(feats[1:]).squeeze(-1))
-    return feats, actions, rewards, conts
+    return Dream(feats, actions, rewards, conts)
 
 
 def lambda_returns(rewards, conts, values, gamma: float, lam: float) -> torch.Tensor:
@@ -737,36 +769,38 @@ def lambda_returns(rewards, conts, values, gamma: float, lam: float) -> torch.Te
 
 
 def actor_critic_loss(
-    agent: Agent, feats, actions, rewards, conts, start_w, scale, n_updates, args, dynamics
+    agent: Agent, dream: Dream, start_w, *, dynamics=False, gamma=1 - 1 / 333, lam=0.95, entropy_coef=3e-4
 ):
     """DreamerV3 actor-critic on an imagined rollout. Advantages are normalised by the return scale
-    max(1, P95 - P5) (EMA). The actor uses REINFORCE, or (``dynamics``) the gradient of the normalised
-    lambda-return through the differentiable rollout; both with an entropy bonus. The two-hot critic
-    fits the lambda-returns and is regularised toward its slow copy."""
+    max(1, S) (``ReturnScale``). The actor uses REINFORCE, or (``dynamics``) the gradient of the
+    normalised lambda-return through the differentiable rollout; both with an entropy bonus. The two-hot
+    critic fits the lambda-returns and is regularised toward its slow copy."""
+    feats, conts = dream.feats, dream.conts
     if dynamics:  # values differentiable through the rollout; the critic's own loss sees detached feats
         values = agent.twohot.mean(agent.critic(feats))
         logits = agent.critic(feats[:-1].detach())
     else:  # the rollout carries no gradient: one critic pass serves the values and the critic loss
         all_logits = agent.critic(feats)
         values, logits = agent.twohot.mean(all_logits.detach()), all_logits[:-1]
-    returns = lambda_returns(rewards, conts, values, args.gamma, args.lam)  # (H, N)
+    returns = lambda_returns(dream.rewards, conts, values, gamma, lam)  # (H, N)
     with torch.no_grad():
         w = torch.cumprod(torch.cat([torch.ones_like(conts[:1]), conts[:-1]]), 0) * start_w
-        lo, hi = torch.quantile(returns.detach().flatten(), torch.tensor([0.05, 0.95], device=returns.device))
-        scale = args.return_norm_decay * scale + (1 - args.return_norm_decay) * (hi - lo).item()
-        # Bias-corrected like Adam's moments: the EMA starts at 0.
-        debiased = scale / (1 - args.return_norm_decay ** (n_updates + 1))
+        scale = agent.return_scale.update(returns)
         slow_target = agent.twohot.mean(agent.slow_critic(feats[:-1].detach()))
-    logp, entropy = agent.actor.log_prob(feats[:-1].detach(), actions.detach())
+    logp, entropy = agent.actor.log_prob(feats[:-1].detach(), dream.actions.detach())
     if dynamics:
-        objective = (returns - values[:-1].detach()) / max(1.0, debiased)
+        objective = (returns - values[:-1].detach()) / scale.clamp(min=1.0)
     else:
-        objective = logp * ((returns - values[:-1]) / max(1.0, debiased)).detach()
-    loss_actor = -(w * (objective + args.entropy_coef * entropy)).mean()
+        objective = logp * ((returns - values[:-1]) / scale.clamp(min=1.0)).detach()
+    loss_actor = -(w * (objective + entropy_coef * entropy)).mean()
     target = returns.detach()
     loss_critic = (w * (agent.twohot.loss(logits, target) + agent.twohot.loss(logits, slow_target))).mean()
-    stats = {"return_scale": debiased, "imag_return": returns.mean().item(), "entropy": entropy.mean().item()}
-    return loss_actor, loss_critic, scale, stats
+    stats = {
+        "return_scale": scale,
+        "imag_return": returns.detach().mean(),
+        "entropy": entropy.detach().mean(),
+    }
+    return loss_actor, loss_critic, stats
 
 
 # --------------------------------------------------------------------------------------------------
@@ -880,8 +914,8 @@ def dream_filmstrip(agent: Agent, observer: Observer, args: Args, steps: int, se
     obs, _ = env.reset(seed=seed)
     deter, stoch = agent.rssm.initial(1, dev)
     embed = agent.encoder(observer(*as_tensors(obs, dev)))
-    deter, stoch, _, _ = agent.rssm.obs_step(deter, stoch, torch.zeros(1, agent.n_actions, device=dev),
-                                             embed, torch.ones(1, device=dev))  # fmt: skip
+    no_action, first = torch.zeros(1, agent.n_actions, device=dev), torch.ones(1, device=dev)
+    deter, stoch, _, _ = agent.rssm.obs_step(deter, stoch, no_action, embed, first)
     real, dream = [obs["image"][0]], [agent.decoder.image(feat_of(deter, stoch))]
     for _ in range(steps - 1):
         a = agent.actor.act(feat_of(deter, stoch), mode=True)
@@ -1106,12 +1140,11 @@ def export_policy(agent: Agent, observer: Observer, args: Args, path: Path) -> N
     s = ENV_SPECS[args.env]
     policy = PolicyStep(copy.deepcopy(agent).cpu().eval(), copy.deepcopy(observer).cpu().eval())
     n = 2
-    example = (
-        torch.zeros(n, s["image"], s["image"], 3, dtype=torch.uint8), torch.zeros(n, s["attr"]),
-        torch.zeros(n, args.deter), torch.zeros(n, agent.rssm.stoch), torch.zeros(n, s["actions"]),
-        torch.ones(n), torch.rand(n, STOCH, args.classes),
-        torch.rand(n, s["actions"]) if agent.discrete else torch.randn(n, s["actions"]),
-    )  # fmt: skip
+    image, attr = torch.zeros(n, s["image"], s["image"], 3, dtype=torch.uint8), torch.zeros(n, s["attr"])
+    state = (torch.zeros(n, args.deter), torch.zeros(n, agent.rssm.stoch), torch.zeros(n, s["actions"]))
+    noise_z = torch.rand(n, STOCH, args.classes)
+    noise_a = torch.rand(n, s["actions"]) if agent.discrete else torch.randn(n, s["actions"])
+    example = (image, attr, *state, torch.ones(n), noise_z, noise_a)
     batch = torch.export.Dim("batch", min=1, max=4096)
     with torch.no_grad():
         program = torch.export.export(policy, example, dynamic_shapes=tuple({0: batch} for _ in example))
@@ -1153,7 +1186,8 @@ EVAL_KEYS = ("task", "obs", "deter", "hidden", "units", "cnn_depth", "layers", "
 def load_agent_checkpoint(path: Path, args: Args, fingerprint: float) -> dict:
     """The Dreamer checkpoint at ``path``, checked against this command: same env, task, observation
     kind and network widths, the frozen VAEs it was trained on (``--obs vae``), and (``--resume``) every
-    setting that defines the run."""
+    setting that defines the run. A checkpoint of the previous layout (return scale in the loop state) is
+    converted on reading."""
     train = f"python dreamer_baseline.py --env {args.env} --obs {args.obs} --size {args.size}"
     if not path.is_file():
         raise UsageError(f"no agent checkpoint at {path}; train one with `{train}`")
@@ -1178,6 +1212,10 @@ def load_agent_checkpoint(path: Path, args: Args, fingerprint: float) -> dict:
             f"{path} was made with {' '.join(changed)}, which differ from this command: give the same "
             "settings to continue that run, or start a separate one (another --exp-name or --seed)"
         )
+    if "return_scale.ema" not in ckpt["agent"]:  # the return scale was a float of the loop state
+        state = ckpt["state"]
+        ckpt["agent"]["return_scale.ema"] = torch.tensor(state.pop("return_scale", 0.0), dtype=torch.float64)
+        ckpt["agent"]["return_scale.count"] = torch.tensor(float(state["updates"]), dtype=torch.float64)
     return ckpt
 
 
@@ -1226,14 +1264,17 @@ def updates_due(env_steps: int, args: Args) -> int:
     return int(agent_steps * args.train_ratio / (args.batch_size * args.batch_length))
 
 
-def train_update(agent: Agent, opts: dict, replay: Replay, args: Args, state: dict, dev) -> dict:
+def train_update(agent: Agent, opts: dict, replay: Replay, args: Args, env_step: int = 0) -> dict:
     """One training step: the world model on replayed sequences, then the actor-critic on rollouts
-    dreamt from every replayed posterior state."""
-    raw = replay.sample(args.batch_size, args.batch_length)
-    batch = {k: torch.as_tensor(v, device=dev) for k, v in raw.items()}
+    dreamt from every replayed posterior state. Returns detached tensors, read once per log interval."""
+    dev = agent.twohot.bins.device
+    batch = {
+        k: torch.as_tensor(v, device=dev)
+        for k, v in replay.sample(args.batch_size, args.batch_length).items()
+    }
     loss_wm, terms, (deter, stoch) = world_model_loss(agent, batch, args)
     if not torch.isfinite(loss_wm):
-        raise FloatingPointError(f"non-finite world-model loss at env step {state['env_steps']:,}")
+        raise FloatingPointError(f"non-finite world-model loss at env step {env_step:,}")
     opts["wm"].zero_grad(set_to_none=True)
     loss_wm.backward()
     nn.utils.clip_grad_norm_(agent.world_model_parameters(), 1000.0)
@@ -1242,21 +1283,18 @@ def train_update(agent: Agent, opts: dict, replay: Replay, args: Args, state: di
     dynamics = args.actor_grad == "dynamics" or (args.actor_grad == "auto" and not agent.discrete)
     deter0, stoch0 = deter.detach().flatten(0, 1), stoch.detach().flatten(0, 1)
     start_w = (1 - batch["terminal"]).flatten()  # no dream from an episode's final observation
-    feats, actions, rewards, conts = imagine(agent, deter0, stoch0, args.imag_horizon, grad=dynamics)
-    loss_actor, loss_critic, state["return_scale"], stats = actor_critic_loss(
+    dream = imagine(agent, deter0, stoch0, args.imag_horizon, grad=dynamics)
+    loss_actor, loss_critic, stats = actor_critic_loss(
         agent,
-        feats,
-        actions,
-        rewards,
-        conts,
+        dream,
         start_w,
-        state["return_scale"],
-        state["updates"],
-        args,
-        dynamics,
+        dynamics=dynamics,
+        gamma=args.gamma,
+        lam=args.lam,
+        entropy_coef=args.entropy_coef,
     )
     if not (torch.isfinite(loss_actor) and torch.isfinite(loss_critic)):
-        raise FloatingPointError(f"non-finite actor-critic loss at env step {state['env_steps']:,}")
+        raise FloatingPointError(f"non-finite actor-critic loss at env step {env_step:,}")
     opts["actor"].zero_grad(set_to_none=True)
     opts["critic"].zero_grad(set_to_none=True)
     # Each loss reaches only its own network (the world model is trained by L_WM alone).
@@ -1269,8 +1307,8 @@ def train_update(agent: Agent, opts: dict, replay: Replay, args: Args, state: di
     with torch.no_grad():  # slow critic: EMA of the critic
         for p_slow, p in zip(agent.slow_critic.parameters(), agent.critic.parameters(), strict=True):
             p_slow.lerp_(p, 1 - args.slow_critic_decay)
-    out = {"loss_wm": loss_wm, **terms, "loss_actor": loss_actor, "loss_critic": loss_critic}
-    return {k: v.item() for k, v in out.items()} | stats
+    out = {"loss_wm": loss_wm, **terms, "loss_actor": loss_actor, "loss_critic": loss_critic, **stats}
+    return {k: v.detach() for k, v in out.items()}
 
 
 def make_optimizers(agent: Agent, args: Args) -> dict:
@@ -1282,26 +1320,232 @@ def make_optimizers(agent: Agent, args: Args) -> dict:
     }
 
 
-def load_observer(args: Args) -> tuple[Observer, str | None]:
+# --------------------------------------------------------------------------------------------------
+# The run: what the training loop carries, and the bookkeeping around DreamerV3's loop
+# --------------------------------------------------------------------------------------------------
+@dataclass
+class LoopState:
+    """Counters of the training loop (saved in the agent checkpoint, restored by --resume)."""
+
+    env_steps: int = 0  # in the paper's unit (RoboDesk: simulator frames)
+    updates: int = 0
+    flops: int = 0  # forward + backward FLOPs of every update so far (the paper's "RL training FLOPs")
+    flops_per_update: int = 0  # counted on the first update; every update has the same shapes
+    episodes: int = 0
+    criterion_step: int | None = None
+    recent: list = field(default_factory=list)  # the last --smoothing normalised training returns
+    next_eval: int = 0
+    next_save: int = 0
+    next_video: int = 0
+
+
+@dataclass
+class Run:
+    """One training run: its settings, networks, data, counters and outputs."""
+
+    args: Args
+    frozen: Observer  # raw observations, or the frozen VAE means (--obs vae)
+    agent: Agent
+    opts: dict
+    replay: Replay
+    state: LoopState
+    writer: SummaryWriter
+    agent_path: Path
+    pretrained: dict  # {"vae.pt": path} with --obs vae
+    model: str  # "raw" (Dreamer) or "vae" (VAE-Dreamer)
+    ref: tuple | None  # Simple Shapes returns of the random and the greedy policy (normalisation)
+    t0: float = field(default_factory=time.time)
+    steps0: int = 0
+
+    def normalise(self, ret: float) -> float:
+        return (ret - self.ref[0]) / (self.ref[1] - self.ref[0]) if self.ref else float("nan")
+
+
+def load_frozen(args: Args, dev) -> tuple[Observer, dict]:
+    """What the agent observes: raw observations, or the frozen VAE means (yours under
+    --checkpoint-dir, else the bundled ones)."""
     if args.obs == "raw":
-        return Observer(args.env, "raw", None), None
-    vae_path = pretrained_paths(args.checkpoint_dir, args.env, {"vae.pt": args.vae_checkpoint})["vae.pt"]
-    vae = load_pretrained(vae_path, "vae", args.env, "collect vae", args.checkpoint_dir, args.task)
-    return Observer(args.env, "vae", vae), str(vae_path)
+        return Observer(args.env, "raw", None).to(dev), {}
+    paths = pretrained_paths(args.checkpoint_dir, args.env, {"vae.pt": args.vae_checkpoint})
+    vae = load_pretrained(paths["vae.pt"], "vae", args.env, "collect vae", args.checkpoint_dir, args.task)
+    return Observer(args.env, "vae", vae).to(dev), paths
 
 
-# --------------------------------------------------------------------------------------------------
-# Training loop
-# --------------------------------------------------------------------------------------------------
-def evaluate_checkpoint(agent: Agent, observer: Observer, args: Args, ref) -> dict:
+def run_name(args: Args, model: str) -> str:
+    task = "" if args.env == "simple_shapes" else f"_{args.task}"
+    return f"{args.exp_name}_{model}_{args.size}_{args.env}{task}_s{args.seed}"
+
+
+def start_run(args: Args, observer: Observer, agent: Agent, paths: dict, agent_path: Path) -> Run:
+    """Claim the outputs, build optimizers and replay, resume when asked, and print what runs."""
+    runs_dir = Path("runs") / run_name(args, args.obs)
+    # Nothing of an earlier run is overwritten by accident, and the output folders take files now.
+    claim_outputs([agent_path, agent_path.with_suffix(".policy.pt2"), runs_dir], args.resume, args.overwrite)
+    ensure_writable(agent_path.parent)
+    ensure_writable(runs_dir)
+    opts = make_optimizers(agent, args)
+    replay = Replay(args.buffer_size, args.num_envs, observer.spaces(args.env), agent.n_actions, args.seed)
+    state = LoopState(
+        next_eval=args.eval_every, next_save=args.save_every, next_video=args.video_every or args.total_steps
+    )
+    if args.resume:
+        ck = load_agent_checkpoint(agent_path, args, observer_fingerprint(observer))
+        agent.load_state_dict(ck["agent"])
+        for name, opt in opts.items():
+            opt.load_state_dict(ck["opts"][name])
+        replay.load_state_dict(ck["replay"])
+        state = LoopState(**ck["state"])
+        torch.set_rng_state(ck["torch_rng"])
+        np.random.set_state(ck["np_rng"])
+        print(f"[{TAG}] resuming {agent_path} at env step {state.env_steps:,}")
+    writer = SummaryWriter(str(runs_dir))
+    if not args.resume:
+        table = "\n".join(f"|{k}|{v}|" for k, v in vars(args).items())
+        writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + table)
+    ref = ss_reference_returns() if args.env == "simple_shapes" else None
+    run = Run(args, observer, agent, opts, replay, state, writer, agent_path, paths, args.obs, ref)
+    run.steps0 = state.env_steps
+    n, total = agent.n_trainable(), TABLE_TOTALS[args.size]
+    name = "VAE-Dreamer" if args.obs == "vae" else "Dreamer"
+    custom = any(getattr(args, k) != v for k, v in MODEL_SIZES[args.size].items())
+    task = "" if args.env == "simple_shapes" else f"_{args.task}"
+    print(
+        f"[{TAG}] {name} {args.size}{' with custom widths' if custom else ''} on {args.env}{task}: "
+        f"{n['total']:,} trainable parameters (world model {n['world_model']:,}, actor {n['actor']:,}, "
+        f"critic {n['critic']:,})"
+        + ("" if custom else f"; the table's total {total / 1e6:.0f}M ({n['total'] / total - 1:+.1%})")
+    )
+    if ref:
+        print(f"[{TAG}] normalised return: random policy {ref[0]:.1f} -> 0, greedy policy {ref[1]:.1f} -> 1")
+    return run
+
+
+def save(run: Run) -> None:
+    """The resumable agent checkpoint (networks, optimizers, replay, counters, random states) and the
+    exported expert policy beside it."""
+    a = run.args
+    atomic_save(
+        {
+            "kind": "dreamer",
+            "env": a.env,
+            "task": a.task,
+            "args": asdict(a),
+            "vae_checkpoint": str(run.pretrained["vae.pt"]) if run.pretrained else None,
+            "observer_fingerprint": observer_fingerprint(run.frozen),
+            "agent": run.agent.state_dict(),
+            "opts": {k: opt.state_dict() for k, opt in run.opts.items()},
+            "replay": run.replay.state_dict(),
+            "state": asdict(run.state),
+            "torch_rng": torch.get_rng_state(),
+            "np_rng": np.random.get_state(),
+        },
+        run.agent_path,
+    )
+    export_policy(run.agent, run.frozen, a, run.agent_path.with_suffix(".policy.pt2"))
+
+
+def log_episode(run: Run, ret: float, success: float) -> None:
+    """A finished training episode: its return, the smoothed normalised return and the criterion."""
+    s, a, step = run.state, run.args, run.state.env_steps
+    s.episodes += 1
+    run.writer.add_scalar("charts/episodic_return", ret, step)
+    if a.env == "robodesk":
+        run.writer.add_scalar("charts/success_count", success, step)
+        return
+    s.recent = (s.recent + [run.normalise(ret)])[-a.smoothing :]
+    smooth = float(np.mean(s.recent))
+    run.writer.add_scalar("charts/normalised_return", run.normalise(ret), step)
+    run.writer.add_scalar("charts/smoothed_normalised_return", smooth, step)
+    if s.criterion_step is None and len(s.recent) == a.smoothing and smooth >= a.criterion:
+        s.criterion_step = step
+        run.writer.add_scalar("charts/criterion_step", step, step)
+        minutes = (time.time() - run.t0) / 60
+        print(
+            f"[{TAG}] return criterion ({a.criterion}) reached at env step {step:,}, "
+            f"{minutes:.1f} min into this run"
+        )
+
+
+def bookkeeping(run: Run, logs: dict) -> None:
+    """What is due at this env step: scalars and a progress line, an evaluation, a dream video, a save."""
+    a, s, w = run.args, run.state, run.writer
+    step, repeat = s.env_steps, ACTION_REPEAT[a.env]
+    if step % a.log_every < a.num_envs * repeat and logs:
+        logs = {k: float(v) for k, v in logs.items()}  # the one host sync per log interval
+        sps = (step - run.steps0) / max(time.time() - run.t0, 1e-9)
+        for k, v in logs.items():
+            w.add_scalar(f"losses/{k}", v, step)
+        w.add_scalar("charts/SPS", sps, step)
+        w.add_scalar("charts/updates", s.updates, step)
+        w.add_scalar("charts/train_flops", s.flops, step)
+        smooth = np.mean(s.recent) if s.recent else float("nan")
+        eta = (a.total_steps - step) / max(sps, 1e-9) / 60
+        print(
+            f"[{TAG}] step {step:,}/{a.total_steps:,} updates {s.updates:,} {sps:.1f} steps/s "
+            f"ETA {eta:.1f} min | wm {logs['loss_wm']:.2f} (kl {logs['kl']:.2f} "
+            f"reward {logs['loss_reward']:.3f}) smoothed normalised return {smooth:.3f}",
+            flush=True,
+        )
+    if step >= s.next_eval:
+        s.next_eval += a.eval_every
+        rets, succ = run_episodes(run.agent, run.frozen, a, a.eval_episodes, "none", seed=10**6 + step)
+        w.add_scalar("eval/episodic_return", rets.mean(), step)
+        if run.ref:
+            w.add_scalar("eval/normalised_return", run.normalise(float(rets.mean())), step)
+        if a.env == "robodesk":
+            w.add_scalar("eval/success_count", succ.mean(), step)
+    if step >= s.next_video:
+        s.next_video += a.video_every or a.total_steps
+        strip = dream_filmstrip(run.agent, run.frozen, a, 16, seed=10**6)
+        if strip is not None:
+            w.add_image("dreams/real_top_imagined_bottom", strip, step, dataformats="HWC")
+    if step >= s.next_save:
+        s.next_save += a.save_every
+        save(run)
+
+
+def finish(run: Run) -> dict:
+    """Save the trained agent, then a final evaluation and dream video; the run's figures."""
+    a, s = run.args, run.state
+    save(run)  # before the final evaluation, so Ctrl-C there loses nothing
+    try:
+        rets, succ = run_episodes(run.agent, run.frozen, a, a.eval_episodes, "none", seed=10**6 + 1)
+        strip = dream_filmstrip(run.agent, run.frozen, a, 16, seed=10**6)
+    except KeyboardInterrupt:
+        run.writer.close()
+        print(f"[{TAG}] interrupted in the final evaluation; the agent is saved at {run.agent_path}")
+        raise SystemExit(130) from None
+    if strip is not None:
+        run.writer.add_image("dreams/real_top_imagined_bottom", strip, s.env_steps, dataformats="HWC")
+    run.writer.close()
+    result = {
+        "env_steps": s.env_steps,
+        "updates": s.updates,
+        "train_flops": s.flops,
+        "criterion_step": s.criterion_step,
+        "final_return": float(rets.mean()),
+        "wall_s": time.time() - run.t0,
+    }
+    if run.ref:
+        result["final_normalised_return"] = run.normalise(float(rets.mean()))
+    if a.env == "robodesk":
+        result["final_success_count"] = float(succ.mean())
+    policy = run.agent_path.with_suffix(".policy.pt2")
+    print(f"[{TAG}] done: {result}; agent checkpoint {run.agent_path}, expert policy {policy}")
+    return result
+
+
+def evaluate_checkpoint(agent: Agent, observer: Observer, args: Args, path: Path) -> dict:
     """--eval-only: the modality ablation of a trained agent (paper section "Modality Ablation
     Robustness"): --eval-episodes fresh episodes with --drop removed (its input zeroed)."""
+    agent.load_state_dict(load_agent_checkpoint(path, args, observer_fingerprint(observer))["agent"])
     rets, succ = run_episodes(agent, observer, args, args.eval_episodes, args.drop, seed=args.seed + 10**6)
     sem = rets.std(ddof=1) / math.sqrt(len(rets)) if len(rets) > 1 else 0.0
     out = {"drop": args.drop, "return_mean": float(rets.mean()), "return_sem": float(sem)}
     line = f"[eval] drop={args.drop}: return {rets.mean():.2f} ± {sem:.2f} (s.e.m., {len(rets)} episodes)"
-    if ref:
-        out["normalised_return"] = (out["return_mean"] - ref[0]) / (ref[1] - ref[0])
+    if args.env == "simple_shapes":
+        lo, hi = ss_reference_returns()
+        out["normalised_return"] = (out["return_mean"] - lo) / (hi - lo)
         line += f", normalised {out['normalised_return']:.3f}"
     if args.env == "robodesk":
         out["success_count"] = float(succ.mean())
@@ -1310,271 +1554,119 @@ def evaluate_checkpoint(agent: Agent, observer: Observer, args: Args, ref) -> di
     return out
 
 
+def random_actions(rng: np.random.Generator, n: int, action_dim: int, discrete: bool, dev) -> torch.Tensor:
+    """The uniformly random policy that fills the replay buffer before learning starts."""
+    if discrete:
+        a = F.one_hot(torch.as_tensor(rng.integers(0, action_dim, n)), action_dim)
+    else:
+        a = torch.as_tensor(rng.uniform(-1, 1, (n, action_dim)))
+    return a.float().to(dev)
+
+
+def interrupted(run: Run) -> None:
+    """Ctrl-C or SIGTERM: the step and its updates are done; save and exit 130."""
+    save(run)
+    run.writer.close()
+    print(
+        f"[{TAG}] interrupted at env step {run.state.env_steps:,}: saved {run.agent_path}; "
+        "the same command with --resume continues the run",
+        flush=True,
+    )
+    raise SystemExit(130)  # the shell's code for a run ended by Ctrl-C
+
+
+# --------------------------------------------------------------------------------------------------
+# DreamerV3's training loop
+# --------------------------------------------------------------------------------------------------
 def main(args: Args) -> dict:
-    args.resolve()
+    args = args.resolve()
     check_settings(args)
     if args.torch_threads:
         torch.set_num_threads(args.torch_threads)
     dev = torch.device(args.device)
-    observer, vae_path = load_observer(args)
-    observer = observer.to(dev)
-    spaces = observer.spaces(args.env)
-    task = "" if args.env == "simple_shapes" else f"_{args.task}"
-    run_name = f"{args.exp_name}_{args.obs}_{args.size}_{args.env}{task}_s{args.seed}"
-    ck_root = Path(args.checkpoint_dir) / args.env
-    agent_path = Path(args.checkpoint) if args.checkpoint else ck_root / "agents" / f"{run_name}.pt"
-    policy_path = agent_path.with_suffix(".policy.pt2")
-    runs_dir = Path("runs") / run_name
-    fingerprint = observer_fingerprint(observer)
-
+    observer, paths = load_frozen(args, dev)
     random.seed(args.seed)
     np.random.seed(args.seed)
     torch.manual_seed(args.seed)
-    agent = Agent(args.env, spaces, args).to(dev)
-    discrete = agent.discrete
-    ref = ss_reference_returns() if args.env == "simple_shapes" else None
-
-    def normalise(ret: float) -> float:
-        return (ret - ref[0]) / (ref[1] - ref[0]) if ref else float("nan")
-
+    agent = Agent(args.env, observer.spaces(args.env), args).to(dev)
+    default = Path(args.checkpoint_dir) / args.env / "agents" / f"{run_name(args, args.obs)}.pt"
+    agent_path = Path(args.checkpoint) if args.checkpoint else default
     if args.eval_only:
-        agent.load_state_dict(load_agent_checkpoint(agent_path, args, fingerprint)["agent"])
-        return evaluate_checkpoint(agent, observer, args, ref)
+        return evaluate_checkpoint(agent, observer, args, agent_path)
+    run = start_run(args, observer, agent, paths, agent_path)
+    state, replay, ne, n_actions = run.state, run.replay, args.num_envs, agent.n_actions
 
-    # Nothing of an earlier run is overwritten by accident, and the output folders take files now.
-    claim_outputs([agent_path, policy_path, runs_dir], args.resume, args.overwrite)
-    ensure_writable(agent_path.parent)
-    ensure_writable(runs_dir)
-    opts = make_optimizers(agent, args)
-    n_actions = agent.n_actions
-    replay = Replay(args.buffer_size, args.num_envs, spaces, n_actions, args.seed)
-    state = {
-        "env_steps": 0,
-        "updates": 0,
-        "flops": 0,
-        "flops_per_update": 0,
-        "return_scale": 0.0,
-        "episodes": 0,
-        "criterion_step": None,
-        "recent": [],
-        "next_eval": args.eval_every,
-        "next_save": args.save_every,
-        "next_video": args.video_every or args.total_steps,
-    }
-    if args.resume:
-        ck = load_agent_checkpoint(agent_path, args, fingerprint)
-        agent.load_state_dict(ck["agent"])
-        for name, opt in opts.items():
-            opt.load_state_dict(ck["opts"][name])
-        replay.load_state_dict(ck["replay"])
-        state.update(ck["state"])
-        torch.set_rng_state(ck["torch_rng"])
-        np.random.set_state(ck["np_rng"])
-        print(f"[dreamer] resuming {agent_path} at env step {state['env_steps']:,}")
-
-    writer = SummaryWriter(str(runs_dir))
-    if not args.resume:
-        writer.add_text(
-            "hyperparameters",
-            "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in vars(args).items()),
-        )
-    n = agent.n_trainable()
-    table = TABLE_TOTALS[args.size]
-    name = "VAE-Dreamer" if args.obs == "vae" else "Dreamer"
-    custom = any(getattr(args, k) != v for k, v in MODEL_SIZES[args.size].items())
-    print(
-        f"[dreamer] {name} {args.size}{' with custom widths' if custom else ''} on {args.env}{task}: "
-        f"{n['total']:,} trainable parameters (world model {n['world_model']:,}, actor {n['actor']:,}, "
-        f"critic {n['critic']:,})"
-        + ("" if custom else f"; the table's total {table / 1e6:.0f}M ({n['total'] / table - 1:+.1%})")
-    )
-    if ref:
-        print(
-            f"[dreamer] normalised return: random policy {ref[0]:.1f} -> 0, greedy policy {ref[1]:.1f} -> 1"
-        )
-
-    def save() -> None:
-        atomic_save(
-            {
-                "kind": "dreamer",
-                "env": args.env,
-                "task": args.task,
-                "args": asdict(args),
-                "vae_checkpoint": vae_path,
-                "observer_fingerprint": fingerprint,
-                "agent": agent.state_dict(),
-                "opts": {k: opt.state_dict() for k, opt in opts.items()},
-                "replay": replay.state_dict(),
-                "state": state,
-                "torch_rng": torch.get_rng_state(),
-                "np_rng": np.random.get_state(),
-            },
-            agent_path,
-        )
-        export_policy(agent, observer, args, policy_path)
-
-    def log_episode(ret: float, success: float) -> None:
-        state["episodes"] += 1
-        step = state["env_steps"]
-        writer.add_scalar("charts/episodic_return", ret, step)
-        if args.env == "robodesk":
-            writer.add_scalar("charts/success_count", success, step)
-            return
-        state["recent"] = (state["recent"] + [normalise(ret)])[-args.smoothing :]
-        smooth = float(np.mean(state["recent"]))
-        writer.add_scalar("charts/normalised_return", normalise(ret), step)
-        writer.add_scalar("charts/smoothed_normalised_return", smooth, step)
-        if (
-            state["criterion_step"] is None
-            and len(state["recent"]) == args.smoothing
-            and smooth >= args.criterion
-        ):
-            state["criterion_step"] = step
-            writer.add_scalar("charts/criterion_step", step, step)
-            print(
-                f"[dreamer] return criterion ({args.criterion}) reached at env step {step:,}, "
-                f"{(time.time() - t0) / 60:.1f} min into this run"
-            )
-
-    # ------------------------------------------------------------------------------------------
-    envs_ = make_envs(args, args.num_envs)
-    obs, _ = envs_.reset(seed=args.seed + state["env_steps"])
-    ne = args.num_envs
+    envs_ = make_envs(args, ne)
+    obs, _ = envs_.reset(seed=args.seed + state.env_steps)
     idx = np.arange(ne)
     deter, stoch = agent.rssm.initial(ne, dev)
     prev_a = torch.zeros(ne, n_actions, device=dev)
     reward, terminal, first = np.zeros(ne), np.zeros(ne), np.ones(ne)
     ep_ret, ep_succ = np.zeros(ne), np.zeros(ne)
-    rng = np.random.default_rng(args.seed + state["env_steps"])
-    t0, steps0, last_log = time.time(), state["env_steps"], {}
-    stop = StopRequest("dreamer")
-    while state["env_steps"] < args.total_steps:
-        if args.stop_at_criterion and state["criterion_step"] is not None:
+    rng = np.random.default_rng(args.seed + state.env_steps)
+    logs = {}
+    stop = StopRequest(TAG)
+    while state.env_steps < args.total_steps:
+        if args.stop_at_criterion and state.criterion_step is not None:
             break
         # Store the entry (o_t, a_{t-1}, r_t, terminal_t, first_t), then act on the filtered state.
         o = observer(*as_tensors(obs, dev))
         entry = {k: v.cpu().numpy() for k, v in o.items()}
-        replay.add(idx, entry | {"action": prev_a.cpu().numpy(), "reward": reward, "terminal": terminal,
-                                 "first": first})  # fmt: skip
+        replay.add(
+            idx,
+            entry | {"action": prev_a.cpu().numpy(), "reward": reward, "terminal": terminal, "first": first},
+        )
         with torch.no_grad():
             embed = agent.encoder(o)
             first_t = torch.as_tensor(first, device=dev, dtype=torch.float32)
             deter, stoch, _, _ = agent.rssm.obs_step(deter, stoch, prev_a, embed, first_t)
-            if state["env_steps"] < args.learning_starts:
-                if discrete:
-                    a = F.one_hot(torch.as_tensor(rng.integers(0, n_actions, ne)), n_actions)
-                else:
-                    a = torch.as_tensor(rng.uniform(-1, 1, (ne, n_actions)))
-                a = a.float().to(dev)
+            if state.env_steps < args.learning_starts:
+                a = random_actions(rng, ne, n_actions, agent.discrete, dev)
             else:
                 a = agent.actor.act(feat_of(deter, stoch))
-        obs, r, term, trunc, info = envs_.step(action_for_env(a, discrete))
+        obs, r, term, trunc, info = envs_.step(action_for_env(a, agent.discrete))
         done = term | trunc
         ep_ret += r
         ep_succ += step_success(info, ne)
-        state["env_steps"] += ne * ACTION_REPEAT[args.env]  # the paper's unit: simulator frames on RoboDesk
+        state.env_steps += ne * ACTION_REPEAT[args.env]  # the paper's unit: simulator frames on RoboDesk
         prev_a, reward, terminal, first = a, r.astype(np.float64), term.astype(np.float64), np.zeros(ne)
         if done.any():
             # The final observation is its own entry; the reset observation starts the next episode.
             ends = np.flatnonzero(done)
-            fo = final_observations(info, ends)
-            o_final = observer(*as_tensors(fo, dev))
-            replay.add(ends, {k: v.cpu().numpy() for k, v in o_final.items()} | {
-                "action": a[ends].cpu().numpy(), "reward": r[ends], "terminal": term[ends].astype(float),
-                "first": np.zeros(len(ends))})  # fmt: skip
+            o_final = {
+                k: v.cpu().numpy()
+                for k, v in observer(*as_tensors(final_observations(info, ends), dev)).items()
+            }
+            last = {"action": a[ends].cpu().numpy(), "reward": r[ends], "terminal": term[ends].astype(float)}
+            replay.add(ends, o_final | last | {"first": np.zeros(len(ends))})
             for i in ends:
-                log_episode(float(ep_ret[i]), float(ep_succ[i]))
+                log_episode(run, float(ep_ret[i]), float(ep_succ[i]))
             ep_ret[ends], ep_succ[ends] = 0.0, 0.0
             reward[ends], terminal[ends], first[ends] = 0.0, 0.0, 1.0
             prev_a[torch.as_tensor(ends, device=dev)] = 0.0  # a new episode has no previous action
 
         # Train: the updates owed by the train ratio, once the buffer holds a full sequence.
-        while state["updates"] < updates_due(state["env_steps"], args) and replay.ready(args.batch_length):
+        while state.updates < updates_due(state.env_steps, args) and replay.ready(args.batch_length):
             try:
-                if state["flops_per_update"] == 0:  # same shapes every update: count the first one
-                    last_log, state["flops_per_update"] = count_flops(
-                        lambda: train_update(agent, opts, replay, args, state, dev)
+                if state.flops_per_update == 0:  # same shapes every update: count the first one
+                    logs, state.flops_per_update = count_flops(
+                        lambda: train_update(agent, run.opts, replay, args, state.env_steps)
                     )
                 else:
-                    last_log = train_update(agent, opts, replay, args, state, dev)
+                    logs = train_update(agent, run.opts, replay, args, state.env_steps)
             except FloatingPointError as err:
-                raise FloatingPointError(f"{err}; the last good checkpoint is {agent_path}") from err
-            state["updates"] += 1
-            state["flops"] += state["flops_per_update"]
+                raise FloatingPointError(f"{err}; the last good checkpoint is {run.agent_path}") from err
+            state.updates += 1
+            state.flops += state.flops_per_update
 
-        step = state["env_steps"]
-        if step % args.log_every < ne * ACTION_REPEAT[args.env] and last_log:
-            sps = (step - steps0) / max(time.time() - t0, 1e-9)
-            for k, v in last_log.items():
-                writer.add_scalar(f"losses/{k}", v, step)
-            writer.add_scalar("charts/SPS", sps, step)
-            writer.add_scalar("charts/updates", state["updates"], step)
-            writer.add_scalar("charts/train_flops", state["flops"], step)
-            smooth = np.mean(state["recent"]) if state["recent"] else float("nan")
-            eta = (args.total_steps - step) / max(sps, 1e-9) / 60
-            print(
-                f"[dreamer] step {step:,}/{args.total_steps:,} updates {state['updates']:,} "
-                f"{sps:.1f} steps/s ETA {eta:.1f} min | wm {last_log['loss_wm']:.2f} "
-                f"(kl {last_log['kl']:.2f} reward {last_log['loss_reward']:.3f}) "
-                f"smoothed normalised return {smooth:.3f}",
-                flush=True,
-            )
-        if step >= state["next_eval"]:
-            state["next_eval"] += args.eval_every
-            rets, succ = run_episodes(agent, observer, args, args.eval_episodes, "none", seed=10**6 + step)
-            writer.add_scalar("eval/episodic_return", rets.mean(), step)
-            if ref:
-                writer.add_scalar("eval/normalised_return", normalise(float(rets.mean())), step)
-            if args.env == "robodesk":
-                writer.add_scalar("eval/success_count", succ.mean(), step)
-        if step >= state["next_video"]:
-            state["next_video"] += args.video_every or args.total_steps
-            strip = dream_filmstrip(agent, observer, args, 16, seed=10**6)
-            if strip is not None:
-                writer.add_image("dreams/real_top_imagined_bottom", strip, step, dataformats="HWC")
-        if step >= state["next_save"]:
-            state["next_save"] += args.save_every
-            save()
+        bookkeeping(run, logs)
         if stop.requested:
-            save()
             envs_.close()
-            writer.close()
             stop.restore()
-            print(
-                f"[dreamer] interrupted at env step {step:,}: saved {agent_path}; "
-                "the same command with --resume continues the run",
-                flush=True,
-            )
-            raise SystemExit(130)  # the shell's code for a run ended by Ctrl-C
-
-    # The trained agent is saved before the final evaluation, so Ctrl-C there loses nothing.
-    save()
+            interrupted(run)
     stop.restore()
     envs_.close()
-    try:
-        rets, succ = run_episodes(agent, observer, args, args.eval_episodes, "none", seed=10**6 + 1)
-        strip = dream_filmstrip(agent, observer, args, 16, seed=10**6)
-    except KeyboardInterrupt:
-        writer.close()
-        print(f"[dreamer] interrupted in the final evaluation; the agent is saved at {agent_path}")
-        raise SystemExit(130) from None
-    if strip is not None:
-        writer.add_image("dreams/real_top_imagined_bottom", strip, state["env_steps"], dataformats="HWC")
-    writer.close()
-    result = {
-        "env_steps": state["env_steps"],
-        "updates": state["updates"],
-        "train_flops": state["flops"],
-        "criterion_step": state["criterion_step"],
-        "final_return": float(rets.mean()),
-        "wall_s": time.time() - t0,
-    }
-    if ref:
-        result["final_normalised_return"] = normalise(float(rets.mean()))
-    if args.env == "robodesk":
-        result["final_success_count"] = float(succ.mean())
-    print(f"[dreamer] done: {result}; agent checkpoint {agent_path}, expert policy {policy_path}")
-    return result
+    return finish(run)
 
 
 if __name__ == "__main__":

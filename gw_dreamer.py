@@ -4,15 +4,16 @@ Paper: sections "World Model" and "Actor-Critic", appendix "GW-Dreamer details" 
 Given the GW of the CLIP-like model (``--gw-checkpoint checkpoints/<env>/clip.pt``) the same file is the
 paper's CLIP-Dreamer.
 
-    python pretrain_vae_gw.py --env simple_shapes --cpu-preset    # frozen VAEs + GW (needed first)
-    python gw_dreamer.py --env simple_shapes                       # paper settings
+    python gw_dreamer.py --env simple_shapes                       # paper settings, bundled VAEs + GW
+    python pretrain_vae_gw.py --env simple_shapes --cpu-preset    # your own VAEs + GW (optional)
     python gw_dreamer.py --env robodesk --task push_green
     python gw_dreamer.py --env simple_shapes --eval-only --checkpoint PATH --drop vision   # ablation
 
 Observations -> frozen VAEs (means u_v, u_attr) -> frozen GW with alpha_v = alpha_attr = 0.5 -> z_t.
 World model: h_{t+1} = GRU(h_t, [z_t, a_t]); heads predict z_{t+1}, r_{t+1}, d_{t+1} from h_{t+1}.
 Actor-critic on h_t, trained only on imagined rollouts (DreamerV3's actor-critic, no gradient between the
-world model and the actor-critic).
+world model and the actor-critic). Experiments that are not the paper's model (other actor-critic inputs,
+a stop-gradient in the heads, the true attributes as z_t) live in benchmarks/experiments/.
 """
 
 from __future__ import annotations
@@ -26,9 +27,9 @@ import signal
 import sys
 import threading
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import gymnasium as gym
 import numpy as np
@@ -70,7 +71,7 @@ class Args:
     vae_checkpoint: str | None = None
     """VAE checkpoint (default <checkpoint_dir>/<env>/vae.pt)"""
 
-    # training (appendix Table "GW-Dreamer training")
+    # training (appendix Table "GW-Dreamer training"; None: the table's value for --env, see TABLE)
     total_steps: int | None = None
     """environment steps, in the paper's unit: agent steps on Simple Shapes, simulator frames on RoboDesk
     (4 per agent step: its action repeat); default 100,000 Simple Shapes, 1,000,000 RoboDesk"""
@@ -155,35 +156,26 @@ class Args:
     """only evaluate --checkpoint (the modality ablation with --drop) and exit"""
     drop: Literal["none", "vision", "attr"] = "none"
     """modality removed at evaluation: vision -> alpha = (0, 1), attr -> alpha = (1, 0)"""
-    ac_input: Literal["h", "hz"] = "h"
-    """what the actor and critic read. h: the GRU state h_t, as the tables' input sizes (64, 1024) and the
-    text say. hz: [h_t, z_t], the real z_t when acting and the world model's z in dreams (DreamerV3's and
-    World Models' controller input); an experiment, not the paper's reading (docs/experiments.md)"""
-    heads_read_sg_z: bool = False
-    """an experiment: the reward and done heads read sg(z_{t+1}), so their losses do not train the z head"""
-    zero_init: bool = False
-    """an experiment: the reward head's and the critic's output layers start at zero (DreamerV3)"""
-    z_source: Literal["gw", "attributes"] = "gw"
-    """gw: the paper's z_t. attributes: a control, not a paper variant (Simple Shapes only): z_t is the
-    true attribute vector (its first 10 entries, clipped to [-1, 1]) instead of the GW's, which tests the
-    world model and actor-critic alone (docs/experiments.md)"""
 
     def resolve(self) -> Args:
-        """The tables' defaults for the flags that differ between the environments."""
-        ss = self.env == "simple_shapes"
-        for name, ss_value, rd_value in [
-            ("total_steps", 100_000, 1_000_000),
-            ("batch_size", 64, 32),
-            ("batch_length", 32, 128),
-            ("train_ratio", 4.0, 2.0),
-            ("wm_lr", 1e-3, 3e-4),
-            ("eval_every", 5_000, 50_000),
-        ]:
+        """Fill the flags left at None with the table's value for --env."""
+        for name, value in TABLE[self.env].items():
             if getattr(self, name) is None:
-                setattr(self, name, ss_value if ss else rd_value)
+                setattr(self, name, value)
         return self
 
 
+# The flags whose defaults differ between the environments (appendix Table "GW-Dreamer training"; the
+# step counts and evaluation intervals are the scale of the paper's Figure 3).
+TABLE = {
+    "simple_shapes": dict(
+        total_steps=100_000, batch_size=64, batch_length=32, train_ratio=4.0, wm_lr=1e-3, eval_every=5_000
+    ),
+    "robodesk": dict(
+        total_steps=1_000_000, batch_size=32, batch_length=128, train_ratio=2.0, wm_lr=3e-4, eval_every=50_000
+    ),
+}
+TAG = "gw_dreamer"  # the prefix of every line this script prints
 # Network sizes of the appendix tables ("GRU architecture", "World Model heads", "Actor-Critic").
 SIZES = {
     "simple_shapes": {"gru_in": 32, "gru_hidden": 64, "z_head": (), "ac_layers": 3, "actions": 7},
@@ -305,14 +297,11 @@ class FrozenEncoder(nn.Module):
         labels = gw.get("data", {}).get("samples_per_source_and_task", {})
         self.expert_tasks = sorted(k.split("/", 1)[1] for k in labels if k.startswith("expert/"))
         self.z_dim = s["z"]
-        self.z_source = "gw"  # "attributes": the control of --z-source
         self.eval().requires_grad_(False)
 
     @torch.no_grad()
     def forward(self, obs: dict[str, np.ndarray], alpha_v: float = 0.5, alpha_attr: float = 0.5):
         dev = self.attr_mean.device
-        if self.z_source == "attributes":
-            return torch.as_tensor(obs["attr"][:, : self.z_dim], device=dev, dtype=torch.float32).clamp(-1, 1)
         # A removed modality contributes nothing: its fusion weight is 0 and its input is not read.
         absent = torch.zeros(len(obs["attr"]), self.gw.e["v"][0].in_features, device=dev)
         u_v = u_attr = absent
@@ -410,11 +399,9 @@ class WorldModel(nn.Module):
     def step(self, h: torch.Tensor, z: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
         return self.gru(self.inp(torch.cat([z, a], -1)), h)
 
-    detach_z = False  # --heads-read-sg-z: the reward and done heads read sg(z_{t+1}) (an experiment)
-
     def heads(self, h_next: torch.Tensor):
         z_next = self.z_head(h_next)
-        feat = torch.cat([h_next, z_next.detach() if self.detach_z else z_next], -1)
+        feat = torch.cat([h_next, z_next], -1)
         return z_next, self.reward_head(feat), self.done_head(feat).squeeze(-1)
 
 
@@ -434,7 +421,7 @@ class RewardDecoder:
 
 
 # --------------------------------------------------------------------------------------------------
-# Actor-critic (appendix Tables AC_SS / AC_Rob)
+# Actor-critic (appendix Tables AC_SS / AC_Rob) and DreamerV3's return normaliser
 # --------------------------------------------------------------------------------------------------
 class Actor(nn.Module):
     """Discrete: categorical with 1% uniform mix (DreamerV3). Continuous: Gaussian with tanh mean and
@@ -474,6 +461,51 @@ class Critic(nn.Module):
 
     def forward(self, h: torch.Tensor) -> torch.Tensor:
         return self.net(h)
+
+
+class ReturnScale(nn.Module):
+    """DreamerV3's return scale S = EMA of P95 - P5 of the lambda-returns; advantages are divided by
+    max(1, S). Bias-corrected like Adam's moments: the EMA starts at 0, and dividing by its raw value over
+    the first updates would blow the advantages up by up to 100x. Its state is part of the agent."""
+
+    def __init__(self, decay: float = 0.99):
+        super().__init__()
+        self.decay = decay
+        self.register_buffer("ema", torch.zeros((), dtype=torch.float64))
+        self.register_buffer("count", torch.zeros((), dtype=torch.float64))
+
+    def update(self, returns: torch.Tensor) -> torch.Tensor:
+        """Fold in one batch of returns; the debiased scale S (a 0-d tensor, no host sync)."""
+        lo, hi = torch.quantile(returns.detach(), torch.tensor([0.05, 0.95], device=returns.device))
+        self.ema.copy_(self.decay * self.ema + (1 - self.decay) * (hi - lo).double())
+        self.count.add_(1)
+        return self.ema / (1 - self.decay**self.count)
+
+
+class Agent(nn.Module):
+    """The trainable part of GW-Dreamer: world model, actor, critic, the slow critic and the return scale."""
+
+    def __init__(self, env: str, z_dim: int, reward_loss: str, return_norm_decay: float = 0.99):
+        super().__init__()
+        s = SIZES[env]
+        self.discrete = env == "simple_shapes"
+        self.twohot = TwoHot()
+        self.wm = WorldModel(env, z_dim, s["actions"], 255 if reward_loss == "twohot" else 1)
+        ac_in = self.feature_size(env, z_dim)
+        self.actor = Actor(ac_in, s["actions"], s["ac_layers"], self.discrete)
+        self.critic = Critic(ac_in, s["ac_layers"])
+        self.reward_dec = RewardDecoder(reward_loss, self.twohot)
+        self.slow_critic = copy.deepcopy(self.critic).requires_grad_(False)
+        self.return_scale = ReturnScale(return_norm_decay)
+
+    @staticmethod
+    def feature_size(env: str, z_dim: int) -> int:
+        return SIZES[env]["gru_hidden"]
+
+    def features(self, h: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """What the actor and critic read: the GRU state h_t (the text; the tables' input sizes 64 and
+        1024). h_t has read z_{t-1} and a_{t-1}, not z_t, which the GRU takes together with a_t."""
+        return h
 
 
 # --------------------------------------------------------------------------------------------------
@@ -545,7 +577,7 @@ class Replay:
 
 
 # --------------------------------------------------------------------------------------------------
-# Losses
+# Losses and imagination
 # --------------------------------------------------------------------------------------------------
 def world_model_loss(wm, reward_dec, batch: dict[str, torch.Tensor], args: Args):
     """L_WM = coef_z MSE(z_{t+1}) + coef_r L_r + coef_d BCE(d_{t+1}) on replayed sequences (Algorithm 1,
@@ -591,28 +623,33 @@ def dream_starts(h_entry: torch.Tensor, batch: dict[str, torch.Tensor], imag_fro
     return h0, batch["z"][:, :-1].reshape(n, -1), (1 - batch["last"][:, :-1]).reshape(n)
 
 
-def ac_features(h: torch.Tensor, z: torch.Tensor, ac_input: str) -> torch.Tensor:
-    """The actor-critic's input for GRU state h and current z: h, or [h, z] with --ac-input hz."""
-    return torch.cat([h, z], -1) if ac_input == "hz" else h
+class Dream(NamedTuple):
+    """An imagined rollout of H steps from N starts: the actor-critic's inputs (H + 1, N, ...), the
+    actions taken (H, N, A), the predicted rewards and continuation probabilities (H, N)."""
+
+    feats: torch.Tensor
+    actions: torch.Tensor
+    rewards: torch.Tensor
+    conts: torch.Tensor
 
 
-def imagine(wm, actor, reward_dec, h0: torch.Tensor, z0: torch.Tensor, horizon: int, ac_input: str = "h"):
+def imagine(agent, h0: torch.Tensor, z0: torch.Tensor, horizon: int) -> Dream:
     """Dream ``horizon`` steps from replayed states (h_t, z_t): the real z_t is given only at the first
     step, then the world model's own predictions (paper Figure 3 (2)). No gradient flows through the
-    world model or the sampled actions. Returns the actor-critic's inputs (h_k, or [h_k, z_k] with
-    ``ac_input="hz"``), actions, rewards and continuation probabilities."""
+    world model or the sampled actions."""
+    wm = agent.wm
     with torch.no_grad():
-        hs, actions, rewards, conts = [ac_features(h0, z0, ac_input)], [], [], []
+        feats, actions, rewards, conts = [agent.features(h0, z0)], [], [], []
         h, z = h0, z0
         for _ in range(horizon):
-            a = actor.act(hs[-1])
+            a = agent.actor.act(feats[-1])
             h = wm.step(h, z, a)
             z, r_out, d_logit = wm.heads(h)
-            hs.append(ac_features(h, z, ac_input))
+            feats.append(agent.features(h, z))
             actions.append(a)
-            rewards.append(reward_dec.value(r_out))
+            rewards.append(agent.reward_dec.value(r_out))
             conts.append(1 - torch.sigmoid(d_logit))
-    return torch.stack(hs), torch.stack(actions), torch.stack(rewards), torch.stack(conts)
+    return Dream(*map(torch.stack, (feats, actions, rewards, conts)))
 
 
 def lambda_returns(rewards, conts, values, gamma: float, lam: float) -> torch.Tensor:
@@ -624,32 +661,94 @@ def lambda_returns(rewards, conts, values, gamma: float, lam: float) -> torch.Te
     return torch.stack(out[::-1])
 
 
-def actor_critic_loss(
-    actor, critic, slow_critic, twohot, hs, actions, rewards, conts, start_w, scale, n_updates, args
-):
+def actor_critic_loss(agent, dream: Dream, start_w, *, gamma=1 - 1 / 333, lam=0.95, entropy_coef=3e-3):
     """DreamerV3 actor-critic on an imagined rollout: REINFORCE with advantages normalised by the return
     scale and an entropy bonus (the paper stops gradients at the world model, so no dynamics
     backpropagation even for continuous actions); a two-hot critic on lambda-returns regularised toward
     its slow copy. ``start_w`` masks starts that are an episode's final observation."""
-    logits = critic(hs)  # (H + 1, N, bins); one pass serves the bootstrap values and the critic loss
+    twohot = agent.twohot
+    logits = agent.critic(dream.feats)  # (H + 1, N, bins): one pass for the bootstrap values and the loss
     with torch.no_grad():
         values = twohot.mean(logits.detach())
-        returns = lambda_returns(rewards, conts, values, args.gamma, args.lam)  # (H, N)
+        returns = lambda_returns(dream.rewards, dream.conts, values, gamma, lam)  # (H, N)
         # Weight of dreamt state k: the predicted probability that the episode is still running.
+        conts = dream.conts
         w = torch.cumprod(torch.cat([torch.ones_like(conts[:1]), conts[:-1]]), 0) * start_w
-        lo, hi = torch.quantile(returns, torch.tensor([0.05, 0.95], device=returns.device))
-        scale = args.return_norm_decay * scale + (1 - args.return_norm_decay) * (hi - lo).item()
-        # Bias-corrected like Adam's moments: the EMA starts at 0, and dividing by its raw value over the
-        # first updates would blow the advantages up by up to 100x.
-        debiased = scale / (1 - args.return_norm_decay ** (n_updates + 1))
-        adv = (returns - values[:-1]) / max(1.0, debiased)
-        slow_target = twohot.mean(slow_critic(hs[:-1]))
-    logp, entropy = actor.log_prob(hs[:-1], actions)
-    loss_actor = -(w * (logp * adv + args.entropy_coef * entropy)).mean()
+        scale = agent.return_scale.update(returns)
+        adv = (returns - values[:-1]) / scale.clamp(min=1.0)
+        slow_target = twohot.mean(agent.slow_critic(dream.feats[:-1]))
+    logp, entropy = agent.actor.log_prob(dream.feats[:-1], dream.actions)
+    loss_actor = -(w * (logp * adv + entropy_coef * entropy)).mean()
     critic_nll = twohot.loss(logits[:-1], returns) + twohot.loss(logits[:-1], slow_target)
     loss_critic = (w * critic_nll).mean()
-    stats = {"return_scale": debiased, "imag_return": returns.mean().item(), "entropy": entropy.mean().item()}
-    return loss_actor, loss_critic, scale, stats
+    stats = {"return_scale": scale, "imag_return": returns.mean(), "entropy": entropy.mean()}
+    return loss_actor, loss_critic, stats
+
+
+def train_update(agent: Agent, opts: dict, replay: Replay, args: Args, env_step: int = 0) -> dict:
+    """One global training step: the world model on replayed sequences, then the actor-critic on
+    rollouts dreamt from the replayed states (Algorithm 1, lines 6-14). Returns detached tensors, read
+    once per log interval."""
+    dev = agent.twohot.bins.device
+    batch = {
+        k: torch.as_tensor(v, device=dev)
+        for k, v in replay.sample(args.batch_size, args.batch_length).items()
+    }
+    loss_wm, terms, h_entry, _ = world_model_loss(agent.wm, agent.reward_dec, batch, args)
+    if not torch.isfinite(loss_wm):
+        raise FloatingPointError(f"non-finite world-model loss at env step {env_step:,}")
+    opts["wm"].zero_grad(set_to_none=True)
+    loss_wm.backward()
+    nn.utils.clip_grad_norm_(agent.wm.parameters(), 1000.0)
+    opts["wm"].step()
+    h0, z0, start_w = dream_starts(h_entry.detach(), batch, args.imag_from)
+    dream = imagine(agent, h0, z0, args.imag_horizon)
+    loss_actor, loss_critic, stats = actor_critic_loss(
+        agent, dream, start_w, gamma=args.gamma, lam=args.lam, entropy_coef=args.entropy_coef
+    )
+    if not (torch.isfinite(loss_actor) and torch.isfinite(loss_critic)):
+        raise FloatingPointError(f"non-finite actor-critic loss at env step {env_step:,}")
+    opts["actor"].zero_grad(set_to_none=True)
+    opts["critic"].zero_grad(set_to_none=True)
+    (loss_actor + loss_critic).backward()
+    nn.utils.clip_grad_norm_(agent.actor.parameters(), 100.0)
+    nn.utils.clip_grad_norm_(agent.critic.parameters(), 100.0)
+    opts["actor"].step()
+    opts["critic"].step()
+    with torch.no_grad():  # slow critic: EMA of the critic (DreamerV3)
+        for p_slow, p in zip(agent.slow_critic.parameters(), agent.critic.parameters(), strict=True):
+            p_slow.lerp_(p, 1 - args.slow_critic_decay)
+    out = {"loss_wm": loss_wm, **terms, "loss_actor": loss_actor, "loss_critic": loss_critic, **stats}
+    return {k: v.detach() for k, v in out.items()}
+
+
+def make_optimizers(agent: Agent, args: Args) -> dict:
+    """Adam for each part (appendix Table "GW-Dreamer training"; eps as DreamerV3)."""
+    return {
+        "wm": torch.optim.Adam(agent.wm.parameters(), lr=args.wm_lr, eps=1e-8),
+        "actor": torch.optim.Adam(agent.actor.parameters(), lr=args.ac_lr, eps=1e-5),
+        "critic": torch.optim.Adam(agent.critic.parameters(), lr=args.ac_lr, eps=1e-5),
+    }
+
+
+def updates_due(env_steps: int, args: Args) -> int:
+    """Training updates owed after ``env_steps`` environment steps (the paper's unit).
+
+    The paper's "train ratio" (4 Simple Shapes, 2 RoboDesk) is read as agent steps per update: Algorithm
+    1 collects n transitions then makes m updates, here m = 1 update per n = train_ratio agent steps,
+    i.e. 4,750 updates by the paper's 20,000-step Simple Shapes criterion (after 1,000 random steps), and
+    one update per 8 simulator frames on RoboDesk. DreamerV3's meaning (replayed steps per env step)
+    would give one update of 64 x 32 replayed steps per 512 env steps, 39 updates by 20,000 steps: too
+    few to train a world model and an actor-critic from scratch, so it cannot be the paper's."""
+    agent_steps = max(env_steps - args.learning_starts, 0) / ACTION_REPEAT[args.env]
+    return int(agent_steps / args.train_ratio)
+
+
+def count_flops(fn):
+    """``fn()`` and the forward + backward FLOPs it took (torch.utils.flop_counter)."""
+    with FlopCounterMode(display=False) as counter:
+        out = fn()
+    return out, counter.get_total_flops()
 
 
 # --------------------------------------------------------------------------------------------------
@@ -699,30 +798,6 @@ def step_success(info: dict, n: int) -> np.ndarray:
 
 def action_for_env(a: torch.Tensor, discrete: bool) -> np.ndarray:
     return a.argmax(-1).cpu().numpy() if discrete else a.cpu().numpy().astype(np.float32)
-
-
-class Agent(nn.Module):
-    """The trainable part of GW-Dreamer: world model, actor, critic (and the slow critic)."""
-
-    def __init__(self, env: str, z_dim: int, reward_loss: str, ac_input: str = "h", zero_init: bool = False):
-        super().__init__()
-        s = SIZES[env]
-        self.discrete = env == "simple_shapes"
-        self.ac_input = ac_input
-        self.twohot = TwoHot()
-        self.wm = WorldModel(env, z_dim, s["actions"], 255 if reward_loss == "twohot" else 1)
-        ac_in = s["gru_hidden"] + (z_dim if ac_input == "hz" else 0)
-        self.actor = Actor(ac_in, s["actions"], s["ac_layers"], self.discrete)
-        self.critic = Critic(ac_in, s["ac_layers"])
-        self.reward_dec = RewardDecoder(reward_loss, self.twohot)
-        if zero_init:  # DreamerV3: reward and value predictions start at 0 (an experiment here)
-            for last in (self.wm.reward_head[-1], self.critic.net[-1]):
-                nn.init.zeros_(last.weight)
-                nn.init.zeros_(last.bias)
-        self.slow_critic = copy.deepcopy(self.critic).requires_grad_(False)
-
-    def features(self, h: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
-        return ac_features(h, z, self.ac_input)
 
 
 @torch.no_grad()
@@ -975,7 +1050,7 @@ def cli(main, args_type) -> None:
 
 
 # --------------------------------------------------------------------------------------------------
-# Checkpoints
+# Checkpoints and settings
 # --------------------------------------------------------------------------------------------------
 def gw_fingerprint(encoder: FrozenEncoder) -> float:
     """A number that changes with the frozen weights: a resumed or evaluated agent must use the GW and
@@ -991,12 +1066,16 @@ MAY_CHANGE = set(
     " eval_only drop".split()
 )
 # Settings an evaluation must share with the agent it loads (they shape its networks or inputs).
-EVAL_KEYS = ("task", "reward_loss", "ac_input", "z_source")
+EVAL_KEYS = ("task", "reward_loss")
+# Settings of agents trained by benchmarks/experiments/gw_dreamer_experiments.py (or by this script
+# before they moved there), at the values that make them this script's model.
+EXPERIMENT_KEYS = {"ac_input": "h", "heads_read_sg_z": False, "zero_init": False, "z_source": "gw"}
 
 
 def load_agent_checkpoint(path: Path, args: Args, fingerprint: float) -> dict:
     """The agent checkpoint at ``path``, checked against this command: same env and task, the frozen
-    weights it was trained on, and (``--resume``) every setting that defines the run."""
+    weights it was trained on, and (``--resume``) every setting that defines the run. A checkpoint of the
+    previous layout (return scale in the loop state) is converted on reading."""
     train = f"python gw_dreamer.py --env {args.env}"
     if not path.is_file():
         raise UsageError(f"no agent checkpoint at {path}; train one with `{train}`")
@@ -1009,9 +1088,15 @@ def load_agent_checkpoint(path: Path, args: Args, fingerprint: float) -> dict:
         raise UsageError(
             f"{path} was trained on other VAE/GW weights ({ckpt['vae_checkpoint']}, {ckpt['gw_checkpoint']})"
         )
-    saved, now = {"ac_input": "h", "z_source": "gw"} | ckpt["args"], asdict(args)
+    saved, now = EXPERIMENT_KEYS | ckpt["args"], asdict(args)
     if args.env == "simple_shapes":
         now["task"] = saved.get("task", now["task"])  # Simple Shapes has no task
+    experiment = setting_changes(saved, EXPERIMENT_KEYS | now, EXPERIMENT_KEYS)
+    if experiment:
+        raise UsageError(
+            f"{path} was trained with {' '.join(experiment)}, an experiment: use "
+            f"`python benchmarks/experiments/gw_dreamer_experiments.py {' '.join(experiment)} ...`"
+        )
     changed = setting_changes(saved, now, EVAL_KEYS)
     if changed:
         raise UsageError(f"{path} was trained with {' '.join(changed)}; pass {' '.join(changed)}")
@@ -1021,6 +1106,10 @@ def load_agent_checkpoint(path: Path, args: Args, fingerprint: float) -> dict:
             f"{path} was made with {' '.join(changed)}, which differ from this command: give the same "
             "settings to continue that run, or start a separate one (another --exp-name or --seed)"
         )
+    if "return_scale.ema" not in ckpt["agent"]:  # the return scale was a float of the loop state
+        state = ckpt["state"]
+        ckpt["agent"]["return_scale.ema"] = torch.tensor(state.pop("return_scale", 0.0), dtype=torch.float64)
+        ckpt["agent"]["return_scale.count"] = torch.tensor(float(state["updates"]), dtype=torch.float64)
     return ckpt
 
 
@@ -1053,26 +1142,6 @@ def check_settings(args: Args) -> None:
             raise UsageError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
 
 
-def count_flops(fn):
-    """``fn()`` and the forward + backward FLOPs it took (torch.utils.flop_counter)."""
-    with FlopCounterMode(display=False) as counter:
-        out = fn()
-    return out, counter.get_total_flops()
-
-
-def updates_due(env_steps: int, args: Args) -> int:
-    """Training updates owed after ``env_steps`` environment steps (the paper's unit).
-
-    The paper's "train ratio" (4 Simple Shapes, 2 RoboDesk) is read as agent steps per update: Algorithm
-    1 collects n transitions then makes m updates, here m = 1 update per n = train_ratio agent steps,
-    i.e. 4,750 updates by the paper's 20,000-step Simple Shapes criterion (after 1,000 random steps), and
-    one update per 8 simulator frames on RoboDesk. DreamerV3's meaning (replayed steps per env step)
-    would give one update of 64 x 32 replayed steps per 512 env steps, 39 updates by 20,000 steps: too
-    few to train a world model and an actor-critic from scratch, so it cannot be the paper's."""
-    agent_steps = max(env_steps - args.learning_starts, 0) / ACTION_REPEAT[args.env]
-    return int(agent_steps / args.train_ratio)
-
-
 def schedule(args: Args) -> str:
     """One line that says how this run reads the paper's training schedule (printed at start)."""
     repeat = ACTION_REPEAT[args.env]
@@ -1088,63 +1157,235 @@ def schedule(args: Args) -> str:
     )
 
 
-def train_update(agent: Agent, opts: dict, replay: Replay, args: Args, state: dict, dev) -> dict:
-    """One global training step: the world model on replayed sequences, then the actor-critic on
-    rollouts dreamt from the replayed states (Algorithm 1, lines 6-14)."""
-    raw = replay.sample(args.batch_size, args.batch_length)
-    batch = {k: torch.as_tensor(v, device=dev) for k, v in raw.items()}
-    loss_wm, terms, h_entry, valid = world_model_loss(agent.wm, agent.reward_dec, batch, args)
-    if not torch.isfinite(loss_wm):
-        raise FloatingPointError(f"non-finite world-model loss at env step {state['env_steps']:,}")
-    opts["wm"].zero_grad(set_to_none=True)
-    loss_wm.backward()
-    nn.utils.clip_grad_norm_(agent.wm.parameters(), 1000.0)
-    opts["wm"].step()
-    h0, z0, start_w = dream_starts(h_entry.detach(), batch, args.imag_from)
-    hs, acts, rews, conts = imagine(
-        agent.wm, agent.actor, agent.reward_dec, h0, z0, args.imag_horizon, agent.ac_input
+# --------------------------------------------------------------------------------------------------
+# The run: what the training loop carries, and the bookkeeping around Algorithm 1
+# --------------------------------------------------------------------------------------------------
+@dataclass
+class LoopState:
+    """Counters of the training loop (saved in the agent checkpoint, restored by --resume)."""
+
+    env_steps: int = 0  # in the paper's unit (RoboDesk: simulator frames)
+    updates: int = 0
+    flops: int = 0  # forward + backward FLOPs of every update so far (the paper's "RL training FLOPs")
+    flops_per_update: int = 0  # counted on the first update; every update has the same shapes
+    episodes: int = 0
+    criterion_step: int | None = None
+    recent: list = field(default_factory=list)  # the last --smoothing normalised training returns
+    next_eval: int = 0
+    next_save: int = 0
+    next_video: int = 0
+
+
+@dataclass
+class Run:
+    """One training run: its settings, networks, data, counters and outputs."""
+
+    args: Args
+    frozen: FrozenEncoder  # the frozen VAEs and GW
+    agent: Agent
+    opts: dict
+    replay: Replay
+    state: LoopState
+    writer: SummaryWriter
+    agent_path: Path
+    pretrained: dict  # {"vae.pt": path, "gw.pt": path}
+    model: str  # "gw" (GW-Dreamer) or "clip" (CLIP-Dreamer)
+    ref: tuple | None  # Simple Shapes returns of the random and the greedy policy (normalisation)
+    t0: float = field(default_factory=time.time)
+    steps0: int = 0
+
+    def normalise(self, ret: float) -> float:
+        return (ret - self.ref[0]) / (self.ref[1] - self.ref[0]) if self.ref else float("nan")
+
+
+def load_frozen(args: Args, dev) -> tuple[FrozenEncoder, dict]:
+    """The frozen VAEs + GW this run reads (yours under --checkpoint-dir, else the bundled ones)."""
+    wanted = {"vae.pt": args.vae_checkpoint, "gw.pt": args.gw_checkpoint}
+    paths = pretrained_paths(args.checkpoint_dir, args.env, wanted)
+    encoder = load_encoder(args.env, paths["vae.pt"], paths["gw.pt"], args.checkpoint_dir, args.task)
+    return encoder.to(dev), paths
+
+
+def run_name(args: Args, model: str) -> str:
+    task = "" if args.env == "simple_shapes" else f"_{args.task}"
+    return f"{args.exp_name}_{model}_{args.env}{task}_s{args.seed}"
+
+
+def start_run(args: Args, encoder: FrozenEncoder, agent: Agent, paths: dict, agent_path: Path) -> Run:
+    """Claim the outputs, build optimizers and replay, resume when asked, and print what runs."""
+    model = "gw" if encoder.preset == "gw" else "clip"
+    runs_dir = Path("runs") / run_name(args, model)
+    # Nothing of an earlier run is overwritten by accident, and the output folders take files now.
+    claim_outputs([agent_path, runs_dir], args.resume, args.overwrite)
+    ensure_writable(agent_path.parent)
+    ensure_writable(runs_dir)
+    opts = make_optimizers(agent, args)
+    replay = Replay(args.buffer_size, args.num_envs, encoder.z_dim, SIZES[args.env]["actions"], args.seed)
+    state = LoopState(
+        next_eval=args.eval_every, next_save=args.save_every, next_video=args.video_every or args.total_steps
     )
-    loss_actor, loss_critic, state["return_scale"], stats = actor_critic_loss(
-        agent.actor, agent.critic, agent.slow_critic, agent.twohot, hs, acts, rews, conts,
-        start_w, state["return_scale"], state["updates"], args,
-    )  # fmt: skip
-    if not (torch.isfinite(loss_actor) and torch.isfinite(loss_critic)):
-        raise FloatingPointError(f"non-finite actor-critic loss at env step {state['env_steps']:,}")
-    opts["actor"].zero_grad(set_to_none=True)
-    opts["critic"].zero_grad(set_to_none=True)
-    (loss_actor + loss_critic).backward()
-    nn.utils.clip_grad_norm_(agent.actor.parameters(), 100.0)
-    nn.utils.clip_grad_norm_(agent.critic.parameters(), 100.0)
-    opts["actor"].step()
-    opts["critic"].step()
-    with torch.no_grad():  # slow critic: EMA of the critic (DreamerV3)
-        for p_slow, p in zip(agent.slow_critic.parameters(), agent.critic.parameters(), strict=True):
-            p_slow.lerp_(p, 1 - args.slow_critic_decay)
-    out = {"loss_wm": loss_wm, **terms, "loss_actor": loss_actor, "loss_critic": loss_critic}
-    return {k: v.item() for k, v in out.items()} | stats
+    if args.resume:
+        ck = load_agent_checkpoint(agent_path, args, gw_fingerprint(encoder))
+        agent.load_state_dict(ck["agent"])
+        for name, opt in opts.items():
+            opt.load_state_dict(ck["opts"][name])
+        replay.load_state_dict(ck["replay"])
+        replay.close_episodes()  # the saved run stopped mid-episode
+        state = LoopState(**ck["state"])
+        torch.set_rng_state(ck["torch_rng"])
+        np.random.set_state(ck["np_rng"])
+        print(f"[{TAG}] resuming {agent_path} at env step {state.env_steps:,}")
+    writer = SummaryWriter(str(runs_dir))
+    if not args.resume:
+        table = "\n".join(f"|{k}|{v}|" for k, v in vars(args).items())
+        writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + table)
+    ref = ss_reference_returns() if args.env == "simple_shapes" else None
+    run = Run(args, encoder, agent, opts, replay, state, writer, agent_path, paths, model, ref)
+    run.steps0 = state.env_steps
+    n = {k: sum(p.numel() for p in getattr(agent, k).parameters()) for k in ("wm", "actor", "critic")}
+    frozen = sum(p.numel() for p in encoder.parameters())
+    task = "" if args.env == "simple_shapes" else f"_{args.task}"
+    print(
+        f"[{TAG}] {model.upper()}-Dreamer on {args.env}{task}: world model {n['wm']:,}, "
+        f"actor {n['actor']:,}, critic {n['critic']:,} parameters (+ {frozen:,} frozen)"
+    )
+    print(f"[{TAG}] {schedule(args)}")
+    if args.env == "robodesk":
+        seen = args.task in encoder.expert_tasks
+        print(
+            f"[{TAG}] the GW was trained on expert data of {encoder.expert_tasks or 'no task'} "
+            f"(and random data): {args.task} is {'a task it saw' if seen else 'zero-shot for it'}"
+        )
+    if ref:
+        print(f"[{TAG}] normalised return: random policy {ref[0]:.1f} -> 0, greedy policy {ref[1]:.1f} -> 1")
+    return run
 
 
-def make_optimizers(agent: Agent, args: Args) -> dict:
-    """Adam for each part (appendix Table "GW-Dreamer training"; eps as DreamerV3)."""
-    return {
-        "wm": torch.optim.Adam(agent.wm.parameters(), lr=args.wm_lr, eps=1e-8),
-        "actor": torch.optim.Adam(agent.actor.parameters(), lr=args.ac_lr, eps=1e-5),
-        "critic": torch.optim.Adam(agent.critic.parameters(), lr=args.ac_lr, eps=1e-5),
+def save(run: Run) -> None:
+    """The resumable agent checkpoint: networks, optimizers, replay, counters and random states."""
+    a = run.args
+    atomic_save(
+        {
+            "kind": "gw_dreamer",
+            "env": a.env,
+            "task": a.task,
+            "model": run.model,
+            "args": asdict(a),
+            "gw_checkpoint": str(run.pretrained["gw.pt"]),
+            "vae_checkpoint": str(run.pretrained["vae.pt"]),
+            "gw_fingerprint": gw_fingerprint(run.frozen),
+            "agent": run.agent.state_dict(),
+            "opts": {name: opt.state_dict() for name, opt in run.opts.items()},
+            "replay": run.replay.state_dict(),
+            "state": asdict(run.state),
+            "torch_rng": torch.get_rng_state(),
+            "np_rng": np.random.get_state(),
+        },
+        run.agent_path,
+    )
+
+
+def log_episode(run: Run, ret: float, success: float) -> None:
+    """A finished training episode: its return, the smoothed normalised return and the criterion."""
+    s, a, step = run.state, run.args, run.state.env_steps
+    s.episodes += 1
+    run.writer.add_scalar("charts/episodic_return", ret, step)
+    if a.env == "robodesk":
+        run.writer.add_scalar("charts/success_count", success, step)
+        return
+    s.recent = (s.recent + [run.normalise(ret)])[-a.smoothing :]
+    smooth = float(np.mean(s.recent))
+    run.writer.add_scalar("charts/normalised_return", run.normalise(ret), step)
+    run.writer.add_scalar("charts/smoothed_normalised_return", smooth, step)
+    if s.criterion_step is None and len(s.recent) == a.smoothing and smooth >= a.criterion:
+        s.criterion_step = step
+        run.writer.add_scalar("charts/criterion_step", step, step)
+        minutes = (time.time() - run.t0) / 60
+        print(
+            f"[{TAG}] return criterion ({a.criterion}) reached at env step {step:,}, "
+            f"{minutes:.1f} min into this run"
+        )
+
+
+def bookkeeping(run: Run, logs: dict) -> None:
+    """What is due at this env step: scalars and a progress line, an evaluation, a dream video, a save."""
+    a, s, w = run.args, run.state, run.writer
+    step, repeat = s.env_steps, ACTION_REPEAT[a.env]
+    if step % a.log_every < a.num_envs * repeat and logs:
+        logs = {k: float(v) for k, v in logs.items()}  # the one host sync per log interval
+        sps = (step - run.steps0) / max(time.time() - run.t0, 1e-9)
+        for k, v in logs.items():
+            w.add_scalar(f"losses/{k}", v, step)
+        w.add_scalar("charts/SPS", sps, step)
+        w.add_scalar("charts/updates", s.updates, step)
+        w.add_scalar("charts/agent_steps", step // repeat, step)
+        w.add_scalar("charts/train_flops", s.flops, step)
+        smooth = np.mean(s.recent) if s.recent else float("nan")
+        eta = (a.total_steps - step) / max(sps, 1e-9) / 60
+        print(
+            f"[{TAG}] step {step:,}/{a.total_steps:,} updates {s.updates:,} {sps:.1f} steps/s "
+            f"ETA {eta:.1f} min | wm {logs['loss_wm']:.3f} (z {logs['loss_z']:.3f} r {logs['loss_r']:.3f} "
+            f"d {logs['loss_d']:.3f}) smoothed normalised return {smooth:.3f}",
+            flush=True,
+        )
+    if step >= s.next_eval:
+        s.next_eval += a.eval_every
+        rets, succ = run_episodes(run.agent, run.frozen, a, a.eval_episodes, "none", seed=10**6 + step)
+        w.add_scalar("eval/episodic_return", rets.mean(), step)
+        if run.ref:
+            w.add_scalar("eval/normalised_return", run.normalise(float(rets.mean())), step)
+        if a.env == "robodesk":
+            w.add_scalar("eval/success_count", succ.mean(), step)
+    if step >= s.next_video:
+        s.next_video += a.video_every or a.total_steps
+        strip = dream_filmstrip(run.agent, run.frozen, a, 16, seed=10**6)
+        w.add_image("dreams/real_top_imagined_bottom", strip, step, dataformats="HWC")
+    if step >= s.next_save:
+        s.next_save += a.save_every
+        save(run)
+
+
+def finish(run: Run) -> dict:
+    """Save the trained agent, then a final evaluation and dream video; the run's figures."""
+    a, s = run.args, run.state
+    save(run)  # before the final evaluation, so Ctrl-C there loses nothing
+    try:
+        rets, succ = run_episodes(run.agent, run.frozen, a, a.eval_episodes, "none", seed=10**6 + 1)
+        strip = dream_filmstrip(run.agent, run.frozen, a, 16, seed=10**6)
+    except KeyboardInterrupt:
+        run.writer.close()
+        print(f"[{TAG}] interrupted in the final evaluation; the agent is saved at {run.agent_path}")
+        raise SystemExit(130) from None
+    run.writer.add_image("dreams/real_top_imagined_bottom", strip, s.env_steps, dataformats="HWC")
+    run.writer.close()
+    result = {
+        "env_steps": s.env_steps,
+        "agent_steps": s.env_steps // ACTION_REPEAT[a.env],
+        "updates": s.updates,
+        "train_flops": s.flops,
+        "criterion_step": s.criterion_step,
+        "final_return": float(rets.mean()),
+        "wall_s": time.time() - run.t0,
     }
+    if run.ref:
+        result["final_normalised_return"] = run.normalise(float(rets.mean()))
+    if a.env == "robodesk":
+        result["final_success_count"] = float(succ.mean())
+    print(f"[{TAG}] done: {result}; agent checkpoint {run.agent_path}")
+    return result
 
 
-# --------------------------------------------------------------------------------------------------
-# Training loop (Algorithm 1)
-# --------------------------------------------------------------------------------------------------
-def evaluate_checkpoint(agent: Agent, encoder: FrozenEncoder, args: Args, ref) -> dict:
+def evaluate_checkpoint(agent: Agent, encoder: FrozenEncoder, args: Args, path: Path) -> dict:
     """--eval-only: the modality ablation of a trained agent (paper section "Modality Ablation
     Robustness"): --eval-episodes fresh episodes with --drop removed."""
+    agent.load_state_dict(load_agent_checkpoint(path, args, gw_fingerprint(encoder))["agent"])
     rets, succ = run_episodes(agent, encoder, args, args.eval_episodes, args.drop, seed=args.seed + 10**6)
     sem = rets.std(ddof=1) / math.sqrt(len(rets)) if len(rets) > 1 else 0.0
     out = {"drop": args.drop, "return_mean": float(rets.mean()), "return_sem": float(sem)}
     line = f"[eval] drop={args.drop}: return {rets.mean():.2f} ± {sem:.2f} (s.e.m., {len(rets)} episodes)"
-    if ref:
-        out["normalised_return"] = (out["return_mean"] - ref[0]) / (ref[1] - ref[0])
+    if args.env == "simple_shapes":
+        lo, hi = ss_reference_returns()
+        out["normalised_return"] = (out["return_mean"] - lo) / (hi - lo)
         line += f", normalised {out['normalised_return']:.3f}"
     if args.env == "robodesk":
         out["success_count"] = float(succ.mean())
@@ -1153,285 +1394,111 @@ def evaluate_checkpoint(agent: Agent, encoder: FrozenEncoder, args: Args, ref) -
     return out
 
 
+def random_actions(rng: np.random.Generator, n: int, action_dim: int, discrete: bool, dev) -> torch.Tensor:
+    """The uniformly random policy that fills the replay buffer before learning starts."""
+    if discrete:
+        a = F.one_hot(torch.as_tensor(rng.integers(0, action_dim, n)), action_dim)
+    else:
+        a = torch.as_tensor(rng.uniform(-1, 1, (n, action_dim)))
+    return a.float().to(dev)
+
+
+def interrupted(run: Run) -> None:
+    """Ctrl-C or SIGTERM: the step and its updates are done; save and exit 130."""
+    save(run)
+    run.writer.close()
+    print(
+        f"[{TAG}] interrupted at env step {run.state.env_steps:,}: saved {run.agent_path}; "
+        "the same command with --resume continues the run",
+        flush=True,
+    )
+    raise SystemExit(130)  # the shell's code for a run ended by Ctrl-C
+
+
+# --------------------------------------------------------------------------------------------------
+# Algorithm 1
+# --------------------------------------------------------------------------------------------------
 def main(args: Args) -> dict:
-    args.resolve()
+    args = args.resolve()
     check_settings(args)
     if args.torch_threads:
         torch.set_num_threads(args.torch_threads)
     dev = torch.device(args.device)
-    ck_root = Path(args.checkpoint_dir) / args.env
-    pre = pretrained_paths(
-        args.checkpoint_dir, args.env, {"vae.pt": args.vae_checkpoint, "gw.pt": args.gw_checkpoint}
-    )
-    vae_path, gw_path = pre["vae.pt"], pre["gw.pt"]
-    encoder = load_encoder(args.env, vae_path, gw_path, args.checkpoint_dir, args.task).to(dev)
-    if args.z_source == "attributes":
-        if args.env != "simple_shapes":
-            raise UsageError(
-                "--z-source attributes is a Simple Shapes control (RoboDesk attributes are unbounded)"
-            )
-        encoder.z_source = "attributes"
-    model_name = "gw" if encoder.preset == "gw" else "clip"  # GW-Dreamer or CLIP-Dreamer
-    task = "" if args.env == "simple_shapes" else f"_{args.task}"
-    # The control's and the experiment's runs stay apart from the paper's.
-    control = ("_attrz" if args.z_source == "attributes" else "") + ("_hz" if args.ac_input == "hz" else "")
-    run_name = f"{args.exp_name}_{model_name}{control}_{args.env}{task}_s{args.seed}"
-    agent_path = Path(args.checkpoint) if args.checkpoint else ck_root / "agents" / f"{run_name}.pt"
-    runs_dir = Path("runs") / run_name
-    fingerprint = gw_fingerprint(encoder)
-
+    encoder, paths = load_frozen(args, dev)  # Require: the pre-trained (frozen) GW
     random.seed(args.seed)
     np.random.seed(args.seed)
     torch.manual_seed(args.seed)
-    agent = Agent(args.env, encoder.z_dim, args.reward_loss, args.ac_input, args.zero_init).to(dev)
-    agent.wm.detach_z = args.heads_read_sg_z
-    discrete = agent.discrete
-    ref = ss_reference_returns() if args.env == "simple_shapes" else None
-
-    def normalise(ret: float) -> float:
-        return (ret - ref[0]) / (ref[1] - ref[0]) if ref else float("nan")
-
+    agent = Agent(args.env, encoder.z_dim, args.reward_loss, args.return_norm_decay).to(dev)
+    model = "gw" if encoder.preset == "gw" else "clip"
+    default = Path(args.checkpoint_dir) / args.env / "agents" / f"{run_name(args, model)}.pt"
+    agent_path = Path(args.checkpoint) if args.checkpoint else default
     if args.eval_only:
-        agent.load_state_dict(load_agent_checkpoint(agent_path, args, fingerprint)["agent"])
-        return evaluate_checkpoint(agent, encoder, args, ref)
-
-    # Nothing of an earlier run is overwritten by accident, and the output folders take files now.
-    claim_outputs([agent_path, runs_dir], args.resume, args.overwrite)
-    ensure_writable(agent_path.parent)
-    ensure_writable(runs_dir)
-    opts = make_optimizers(agent, args)
+        return evaluate_checkpoint(agent, encoder, args, agent_path)
+    # Initialize the world model, the actor-critic and the replay buffer (or continue a saved run).
+    run = start_run(args, encoder, agent, paths, agent_path)
+    state, replay, n_envs, repeat = run.state, run.replay, args.num_envs, ACTION_REPEAT[args.env]
     action_dim = SIZES[args.env]["actions"]
-    replay = Replay(args.buffer_size, args.num_envs, encoder.z_dim, action_dim, args.seed)
-    state = {
-        "env_steps": 0,
-        "updates": 0,
-        "flops": 0,
-        "flops_per_update": 0,
-        "return_scale": 0.0,
-        "episodes": 0,
-        "criterion_step": None,
-        "recent": [],
-        "next_eval": args.eval_every,
-        "next_save": args.save_every,
-        "next_video": args.video_every or args.total_steps,
-    }
-    if args.resume:
-        ck = load_agent_checkpoint(agent_path, args, fingerprint)
-        agent.load_state_dict(ck["agent"])
-        for name, opt in opts.items():
-            opt.load_state_dict(ck["opts"][name])
-        replay.load_state_dict(ck["replay"])
-        replay.close_episodes()  # the saved run stopped mid-episode
-        state.update(ck["state"])
-        torch.set_rng_state(ck["torch_rng"])
-        np.random.set_state(ck["np_rng"])
-        print(f"[gw_dreamer] resuming {agent_path} at env step {state['env_steps']:,}")
 
-    writer = SummaryWriter(str(runs_dir))
-    if not args.resume:
-        writer.add_text(
-            "hyperparameters",
-            "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in vars(args).items()),
-        )
-    n_params = {k: sum(p.numel() for p in getattr(agent, k).parameters()) for k in ("wm", "actor", "critic")}
-    frozen = sum(p.numel() for p in encoder.parameters())
-    print(
-        f"[gw_dreamer] {model_name.upper()}-Dreamer on {args.env}{task}: world model {n_params['wm']:,}, "
-        f"actor {n_params['actor']:,}, critic {n_params['critic']:,} parameters (+ {frozen:,} frozen)"
-    )
-    print(f"[gw_dreamer] {schedule(args)}")
-    if args.env == "robodesk":
-        seen = args.task in encoder.expert_tasks
-        print(
-            f"[gw_dreamer] the GW was trained on expert data of {encoder.expert_tasks or 'no task'} "
-            f"(and random data): {args.task} is {'a task it saw' if seen else 'zero-shot for it'}"
-        )
-    if ref:
-        print(
-            f"[gw_dreamer] normalised return: random policy {ref[0]:.1f} -> 0, "
-            f"greedy policy {ref[1]:.1f} -> 1"
-        )
-
-    def save() -> None:
-        atomic_save(
-            {
-                "kind": "gw_dreamer",
-                "env": args.env,
-                "task": args.task,
-                "model": model_name,
-                "args": asdict(args),
-                "gw_checkpoint": str(gw_path),
-                "vae_checkpoint": str(vae_path),
-                "gw_fingerprint": fingerprint,
-                "agent": agent.state_dict(),
-                "opts": {name: opt.state_dict() for name, opt in opts.items()},
-                "replay": replay.state_dict(),
-                "state": state,
-                "torch_rng": torch.get_rng_state(),
-                "np_rng": np.random.get_state(),
-            },
-            agent_path,
-        )
-
-    def log_episode(ret: float, success: float) -> None:
-        state["episodes"] += 1
-        step = state["env_steps"]
-        writer.add_scalar("charts/episodic_return", ret, step)
-        if args.env == "robodesk":
-            writer.add_scalar("charts/success_count", success, step)
-            return
-        state["recent"] = (state["recent"] + [normalise(ret)])[-args.smoothing :]
-        smooth = float(np.mean(state["recent"]))
-        writer.add_scalar("charts/normalised_return", normalise(ret), step)
-        writer.add_scalar("charts/smoothed_normalised_return", smooth, step)
-        if (
-            state["criterion_step"] is None
-            and len(state["recent"]) == args.smoothing
-            and smooth >= args.criterion
-        ):
-            state["criterion_step"] = step
-            writer.add_scalar("charts/criterion_step", step, step)
-            print(
-                f"[gw_dreamer] return criterion ({args.criterion}) reached at env step {step:,}, "
-                f"{(time.time() - t0) / 60:.1f} min into this run"
-            )
-
-    # ------------------------------------------------------------------------------------------
-    repeat = ACTION_REPEAT[args.env]
-    envs_ = make_envs(args, args.num_envs)
-    obs, _ = envs_.reset(seed=args.seed + state["env_steps"])
-    h = torch.zeros(args.num_envs, agent.wm.hidden, device=dev)
-    first = np.ones(args.num_envs, np.float32)
-    ep_ret, ep_succ = np.zeros(args.num_envs), np.zeros(args.num_envs)
-    rng = np.random.default_rng(args.seed + state["env_steps"])
-    t0, steps0, last_log = time.time(), state["env_steps"], {}
-    stop = StopRequest("gw_dreamer")
-    while state["env_steps"] < args.total_steps:
-        if args.stop_at_criterion and state["criterion_step"] is not None:
+    envs_ = make_envs(args, n_envs)
+    obs, _ = envs_.reset(seed=args.seed + state.env_steps)
+    h = torch.zeros(n_envs, agent.wm.hidden, device=dev)
+    first = np.ones(n_envs, np.float32)
+    ep_ret, ep_succ = np.zeros(n_envs), np.zeros(n_envs)
+    rng = np.random.default_rng(args.seed + state.env_steps)
+    logs = {}
+    stop = StopRequest(TAG)
+    while state.env_steps < args.total_steps:
+        if args.stop_at_criterion and state.criterion_step is not None:
             break
-        # Collect: act with the current policy (uniformly random before learning starts).
+        # Collect transitions (o_t, a_t, o_{t+1}, r_{t+1}, d_{t+1}) with the current policy into the
+        # replay buffer, as z_t = GW(o_t) (uniformly random actions before learning starts).
         with torch.no_grad():
             z = encoder(obs)
-            if state["env_steps"] < args.learning_starts:
-                if discrete:
-                    a = F.one_hot(torch.as_tensor(rng.integers(0, action_dim, args.num_envs)), action_dim)
-                else:
-                    a = torch.as_tensor(rng.uniform(-1, 1, (args.num_envs, action_dim)))
-                a = a.float().to(dev)
+            if state.env_steps < args.learning_starts:
+                a = random_actions(rng, n_envs, action_dim, agent.discrete, dev)
             else:
-                # The actor reads h_t, which has seen z_{t-1} and a_{t-1} but not z_t: the GRU takes z_t
-                # together with a_t (WM inputs [z_t, a_t]; actor input = the GRU state in the AC tables),
-                # so an episode's first action comes from h = 0, in dreams as here (--ac-input hz adds z_t).
                 a = agent.actor.act(agent.features(h, z))
             h = agent.wm.step(h, z, a)
-        obs, r, term, trunc, info = envs_.step(action_for_env(a, discrete))
-        done = term | trunc
-        idx = np.arange(args.num_envs)
-        replay.add(idx, z.cpu().numpy(), a.cpu().numpy(), r, term, first, np.zeros(args.num_envs))
-        first = np.zeros(args.num_envs, np.float32)
+        obs, r, term, trunc, info = envs_.step(action_for_env(a, agent.discrete))
+        replay.add(np.arange(n_envs), z.cpu().numpy(), a.cpu().numpy(), r, term, first, np.zeros(n_envs))
+        first = np.zeros(n_envs, np.float32)
         ep_ret += r
-        ep_succ += step_success(info, args.num_envs)
-        state["env_steps"] += args.num_envs * repeat  # the paper's unit: simulator frames on RoboDesk
-        if done.any():
+        ep_succ += step_success(info, n_envs)
+        state.env_steps += n_envs * repeat  # the paper's unit: simulator frames on RoboDesk
+        done = term | trunc
+        if done.any():  # the episode's final observation closes its stream (an entry marked last)
             ends = np.flatnonzero(done)
             z_final = encoder(final_observations(info, ends)).cpu().numpy()
-            zeros = np.zeros(len(ends))
-            replay.add(
-                ends, z_final, np.zeros((len(ends), action_dim)), zeros, zeros, zeros, np.ones(len(ends))
-            )
+            zeros, no_action = np.zeros(len(ends)), np.zeros((len(ends), action_dim))
+            replay.add(ends, z_final, no_action, zeros, zeros, zeros, np.ones(len(ends)))
             for i in ends:
-                log_episode(float(ep_ret[i]), float(ep_succ[i]))
+                log_episode(run, float(ep_ret[i]), float(ep_succ[i]))
             ep_ret[ends], ep_succ[ends], first[ends] = 0.0, 0.0, 1.0
             h[torch.as_tensor(ends, device=dev)] = 0.0
 
-        # Train: the updates owed by the train ratio, once the buffer holds a full batch sequence.
-        while state["updates"] < updates_due(state["env_steps"], args) and replay.ready(args.batch_length):
+        # Training steps: the updates owed by the train ratio, each the world model then the
+        # actor-critic in dreams (train_update), once the buffer holds a full batch sequence.
+        while state.updates < updates_due(state.env_steps, args) and replay.ready(args.batch_length):
             try:
-                if state["flops_per_update"] == 0:  # same shapes every update: count the first one
-                    last_log, state["flops_per_update"] = count_flops(
-                        lambda: train_update(agent, opts, replay, args, state, dev)
+                if state.flops_per_update == 0:  # same shapes every update: count the first one
+                    logs, state.flops_per_update = count_flops(
+                        lambda: train_update(agent, run.opts, replay, args, state.env_steps)
                     )
                 else:
-                    last_log = train_update(agent, opts, replay, args, state, dev)
+                    logs = train_update(agent, run.opts, replay, args, state.env_steps)
             except FloatingPointError as err:
-                raise FloatingPointError(f"{err}; the last good checkpoint is {agent_path}") from err
-            state["updates"] += 1
-            state["flops"] += state["flops_per_update"]
+                raise FloatingPointError(f"{err}; the last good checkpoint is {run.agent_path}") from err
+            state.updates += 1
+            state.flops += state.flops_per_update
 
-        step = state["env_steps"]
-        if step % args.log_every < args.num_envs * repeat and last_log:
-            sps = (step - steps0) / max(time.time() - t0, 1e-9)
-            for k, v in last_log.items():
-                writer.add_scalar(f"losses/{k}", v, step)
-            writer.add_scalar("charts/SPS", sps, step)
-            writer.add_scalar("charts/updates", state["updates"], step)
-            writer.add_scalar("charts/agent_steps", step // repeat, step)
-            writer.add_scalar("charts/train_flops", state["flops"], step)
-            smooth = np.mean(state["recent"]) if state["recent"] else float("nan")
-            eta = (args.total_steps - step) / max(sps, 1e-9) / 60
-            print(
-                f"[gw_dreamer] step {step:,}/{args.total_steps:,} updates {state['updates']:,} "
-                f"{sps:.1f} steps/s ETA {eta:.1f} min | wm {last_log['loss_wm']:.3f} "
-                f"(z {last_log['loss_z']:.3f} r {last_log['loss_r']:.3f} d {last_log['loss_d']:.3f}) "
-                f"smoothed normalised return {smooth:.3f}",
-                flush=True,
-            )
-        if step >= state["next_eval"]:
-            state["next_eval"] += args.eval_every
-            rets, succ = run_episodes(agent, encoder, args, args.eval_episodes, "none", seed=10**6 + step)
-            writer.add_scalar("eval/episodic_return", rets.mean(), step)
-            if ref:
-                writer.add_scalar("eval/normalised_return", normalise(float(rets.mean())), step)
-            if args.env == "robodesk":
-                writer.add_scalar("eval/success_count", succ.mean(), step)
-        if step >= state["next_video"]:
-            state["next_video"] += args.video_every or args.total_steps
-            strip = dream_filmstrip(agent, encoder, args, 16, seed=10**6)
-            writer.add_image("dreams/real_top_imagined_bottom", strip, step, dataformats="HWC")
-        if step >= state["next_save"]:
-            state["next_save"] += args.save_every
-            save()
+        bookkeeping(run, logs)
         if stop.requested:
-            save()
             envs_.close()
-            writer.close()
             stop.restore()
-            print(
-                f"[gw_dreamer] interrupted at env step {step:,}: saved {agent_path}; "
-                "the same command with --resume continues the run",
-                flush=True,
-            )
-            raise SystemExit(130)  # the shell's code for a run ended by Ctrl-C
-
-    # The trained agent is saved before the final evaluation, so Ctrl-C there loses nothing.
-    save()
+            interrupted(run)
     stop.restore()
     envs_.close()
-    try:
-        rets, succ = run_episodes(agent, encoder, args, args.eval_episodes, "none", seed=10**6 + 1)
-        strip = dream_filmstrip(agent, encoder, args, 16, seed=10**6)
-    except KeyboardInterrupt:
-        writer.close()
-        print(f"[gw_dreamer] interrupted in the final evaluation; the agent is saved at {agent_path}")
-        raise SystemExit(130) from None
-    writer.add_image("dreams/real_top_imagined_bottom", strip, state["env_steps"], dataformats="HWC")
-    writer.close()
-    wall = time.time() - t0
-    result = {
-        "env_steps": state["env_steps"],
-        "agent_steps": state["env_steps"] // ACTION_REPEAT[args.env],
-        "updates": state["updates"],
-        "train_flops": state["flops"],
-        "criterion_step": state["criterion_step"],
-        "final_return": float(rets.mean()),
-        "wall_s": wall,
-    }
-    if ref:
-        result["final_normalised_return"] = normalise(float(rets.mean()))
-    if args.env == "robodesk":
-        result["final_success_count"] = float(succ.mean())
-    print(f"[gw_dreamer] done: {result}; agent checkpoint {agent_path}")
-    return result
+    return finish(run)
 
 
 if __name__ == "__main__":

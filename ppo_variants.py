@@ -27,7 +27,7 @@ import signal
 import sys
 import threading
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Literal
 
@@ -154,6 +154,7 @@ ENV_SPECS = {  # must agree with pretrain_vae_gw.py (checked against the checkpo
     "robodesk": {"image": 64, "attr": 76, "latent": 40, "z": 76, "gw_hidden": 512},
 }
 FUSION = {"none": (0.5, 0.5), "vision": (0.0, 1.0), "attr": (1.0, 0.0)}  # (alpha_v, alpha_attr)
+TAG = "ppo"  # the prefix of every line this script prints
 
 
 # --------------------------------------------------------------------------------------------------
@@ -365,6 +366,11 @@ class RawExtractor(nn.Module):
         return torch.cat([self.cnn(x["image"].float() / 255.0), x["attr"]], -1)
 
 
+def tanh_mlp(cin: int, h: int) -> list[nn.Module]:
+    """Two tanh layers of h units, orthogonally initialised (the hidden part of each PPO head)."""
+    return [layer_init(nn.Linear(cin, h)), nn.Tanh(), layer_init(nn.Linear(h, h)), nn.Tanh()]
+
+
 class Agent(nn.Module):
     def __init__(self, observer: Observer, args: Args, n_actions: int, discrete: bool):
         super().__init__()
@@ -376,14 +382,8 @@ class Agent(nn.Module):
             self.extract = nn.Identity()
             feat = observer.feat_dim * k
         h = args.hidden
-        self.actor = nn.Sequential(
-            layer_init(nn.Linear(feat, h)), nn.Tanh(), layer_init(nn.Linear(h, h)), nn.Tanh(),
-            layer_init(nn.Linear(h, n_actions), std=0.01),
-        )  # fmt: skip
-        self.critic = nn.Sequential(
-            layer_init(nn.Linear(feat, h)), nn.Tanh(), layer_init(nn.Linear(h, h)), nn.Tanh(),
-            layer_init(nn.Linear(h, 1), std=1.0),
-        )  # fmt: skip
+        self.actor = nn.Sequential(*tanh_mlp(feat, h), layer_init(nn.Linear(h, n_actions), std=0.01))
+        self.critic = nn.Sequential(*tanh_mlp(feat, h), layer_init(nn.Linear(h, 1), std=1.0))
         self.discrete = discrete
         if not discrete:  # state-independent log std (CleanRL's continuous PPO)
             self.actor_logstd = nn.Parameter(torch.zeros(1, n_actions))
@@ -770,8 +770,8 @@ def ppo_loss(agent: Agent, mb: dict, args: Args):
         v_loss = 0.5 * ((newvalue - mb["returns"]) ** 2).mean()
     ent = entropy.mean()
     loss = pg_loss - args.ent_coef * ent + args.vf_coef * v_loss
-    return loss, {"policy_loss": pg_loss, "value_loss": v_loss, "entropy": ent, "approx_kl": approx_kl,
-                  "clipfrac": clipfrac}  # fmt: skip
+    terms = {"policy_loss": pg_loss, "value_loss": v_loss, "entropy": ent}
+    return loss, terms | {"approx_kl": approx_kl, "clipfrac": clipfrac}
 
 
 class RewardNormalizer:
@@ -815,8 +815,239 @@ def gae(rewards, values, next_value, terminated, args: Args) -> torch.Tensor:
     return adv
 
 
+def ppo_update(agent: Agent, optimizer, mb: dict, args: Args, env_step: int) -> dict:
+    """One Adam step on the PPO loss of a minibatch (gradient norm clipped)."""
+    loss, terms = ppo_loss(agent, mb, args)
+    if not torch.isfinite(loss):
+        raise FloatingPointError(f"non-finite PPO loss at env step {env_step:,}")
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)
+    optimizer.step()
+    return terms
+
+
 # --------------------------------------------------------------------------------------------------
-# Training loop (CleanRL ppo.py)
+# The run: what the training loop carries, and the bookkeeping around CleanRL's PPO loop
+# --------------------------------------------------------------------------------------------------
+@dataclass
+class LoopState:
+    """Counters of the training loop (saved in the agent checkpoint, restored by --resume)."""
+
+    iteration: int = 0  # rollouts collected (and trained on) so far
+    env_steps: int = 0  # in the paper's unit (RoboDesk: simulator frames)
+    flops: int = 0  # forward + backward FLOPs of every minibatch update so far
+    flops_per_minibatch: int = 0  # counted on the first minibatch; every one has the same shapes
+    episodes: int = 0
+    criterion_step: int | None = None
+    recent: list = field(default_factory=list)  # the last --smoothing normalised training returns
+
+
+@dataclass
+class Run:
+    """One training run: its settings, networks, counters and outputs."""
+
+    args: Args
+    frozen: Observer  # the variant's frozen VAEs / GW (nothing for raw observations)
+    agent: Agent
+    optimizer: torch.optim.Optimizer
+    reward_norm: RewardNormalizer
+    state: LoopState
+    writer: SummaryWriter
+    agent_path: Path
+    pretrained: dict  # {"fingerprint": float, "paths": [...]} of the frozen weights
+    ref: tuple | None  # Simple Shapes returns of the random and the greedy policy (normalisation)
+    t0: float = field(default_factory=time.time)
+    steps0: int = 0
+
+    def normalise(self, ret: float) -> float:
+        return (ret - self.ref[0]) / (self.ref[1] - self.ref[0]) if self.ref else float("nan")
+
+
+def run_name(args: Args) -> str:
+    task = "" if args.env == "simple_shapes" else f"_{args.task}"
+    return f"{args.exp_name}_{args.variant}_{args.env}{task}_s{args.seed}"
+
+
+def start_run(
+    args: Args, observer: Observer, agent: Agent, frozen: dict, agent_path: Path, iterations: int
+) -> Run:
+    """Claim the outputs, build the optimizer, resume when asked, and print what runs."""
+    runs_dir = Path("runs") / run_name(args)
+    # Nothing of an earlier run is overwritten by accident, and the output folders take files now.
+    claim_outputs([agent_path, runs_dir], args.resume, args.overwrite)
+    ensure_writable(agent_path.parent)
+    ensure_writable(runs_dir)
+    optimizer = torch.optim.Adam(agent.parameters(), lr=args.learning_rate, eps=1e-5)
+    state, reward_norm = LoopState(), RewardNormalizer(args.num_envs, args.gamma, args.norm_reward)
+    if args.resume:
+        ck = load_agent_checkpoint(agent_path, args, frozen)
+        agent.load_state_dict(ck["agent"])
+        optimizer.load_state_dict(ck["optimizer"])
+        state = LoopState(**ck["state"])
+        reward_norm.load_state_dict(ck["reward_norm"])
+        torch.set_rng_state(ck["torch_rng"])
+        np.random.set_state(ck["np_rng"])
+        print(f"[{TAG}] resuming {agent_path} at env step {state.env_steps:,}")
+    writer = SummaryWriter(str(runs_dir))
+    if not args.resume:
+        table = "\n".join(f"|{k}|{v}|" for k, v in vars(args).items())
+        writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + table)
+    ref = ss_reference_returns() if args.env == "simple_shapes" else None
+    run = Run(args, observer, agent, optimizer, reward_norm, state, writer, agent_path, frozen, ref)
+    run.steps0 = state.env_steps
+    n_params = sum(p.numel() for p in agent.parameters())
+    task = "" if args.env == "simple_shapes" else f"_{args.task}"
+    rollout = args.num_envs * args.num_steps
+    print(
+        f"[{TAG}] {args.variant} PPO on {args.env}{task}: {n_params:,} trainable parameters, "
+        f"{iterations} rollouts of {rollout:,} steps"
+    )
+    if ref:
+        print(f"[{TAG}] normalised return: random policy {ref[0]:.1f} -> 0, greedy policy {ref[1]:.1f} -> 1")
+    return run
+
+
+def save(run: Run) -> None:
+    """The resumable agent checkpoint: networks, optimizer, reward normaliser, counters, random states."""
+    a = run.args
+    atomic_save(
+        {
+            "kind": "ppo",
+            "env": a.env,
+            "task": a.task,
+            "variant": a.variant,
+            "args": asdict(a),
+            "fingerprint": run.pretrained["fingerprint"],
+            "frozen_paths": run.pretrained["paths"],
+            "agent": run.agent.state_dict(),
+            "optimizer": run.optimizer.state_dict(),
+            "state": asdict(run.state),
+            "reward_norm": run.reward_norm.state_dict(),
+            "torch_rng": torch.get_rng_state(),
+            "np_rng": np.random.get_state(),
+        },
+        run.agent_path,
+    )
+
+
+def log_episode(run: Run, ret: float, success: float) -> None:
+    """A finished training episode: its return, the smoothed normalised return and the criterion."""
+    s, a, step = run.state, run.args, run.state.env_steps
+    s.episodes += 1
+    run.writer.add_scalar("charts/episodic_return", ret, step)
+    if a.env == "robodesk":
+        run.writer.add_scalar("charts/success_count", success, step)
+        return
+    s.recent = (s.recent + [run.normalise(ret)])[-a.smoothing :]
+    smooth = float(np.mean(s.recent))
+    run.writer.add_scalar("charts/normalised_return", run.normalise(ret), step)
+    run.writer.add_scalar("charts/smoothed_normalised_return", smooth, step)
+    if s.criterion_step is None and len(s.recent) == a.smoothing and smooth >= a.criterion:
+        s.criterion_step = step
+        run.writer.add_scalar("charts/criterion_step", step, step)
+        minutes = (time.time() - run.t0) / 60
+        print(
+            f"[{TAG}] return criterion ({a.criterion}) reached at env step {step:,}, "
+            f"{minutes:.1f} min into this run"
+        )
+
+
+def bootstrap_truncations(run: Run, r, info, term, trunc, before: dict) -> None:
+    """A time-limit truncation is not an end of the task: add to its reward the discounted value of its
+    final observation (stable-baselines3 does the same). ``before``: the stacks this step acted on."""
+    cut = np.flatnonzero(trunc & ~term)
+    if not len(cut):
+        return
+    dev = r.device
+    final = run.frozen(final_observations(info, cut), "none", dev)
+    x_final = {}
+    for k, v in final.items():  # the stack before this step's push, plus the final frame
+        x_final[k] = torch.cat([before[k][cut][:, v.shape[1] :], v], 1)
+    with torch.no_grad():
+        r[cut] += run.args.gamma * run.agent.get_value(x_final)
+
+
+def log_iteration(run: Run, stats: dict, flat: dict, total: int) -> None:
+    """The scalars and the progress line of one rollout and its update."""
+    s, w, step = run.state, run.writer, run.state.env_steps
+    var_y = flat["returns"].var()
+    explained = float("nan") if var_y == 0 else (1 - (flat["returns"] - flat["values"]).var() / var_y).item()
+    sps = (step - run.steps0) / max(time.time() - run.t0, 1e-9)
+    for k, v in stats.items():
+        w.add_scalar(f"losses/{k}", v.item(), step)
+    w.add_scalar("losses/explained_variance", explained, step)
+    w.add_scalar("charts/learning_rate", run.optimizer.param_groups[0]["lr"], step)
+    w.add_scalar("charts/SPS", sps, step)
+    w.add_scalar("charts/train_flops", s.flops, step)
+    smooth = np.mean(s.recent) if s.recent else float("nan")
+    print(
+        f"[{TAG}] step {step:,}/{total:,} {sps:.0f} steps/s | value loss {stats['value_loss'].item():.3f} "
+        f"entropy {stats['entropy'].item():.3f} smoothed normalised return {smooth:.3f}",
+        flush=True,
+    )
+
+
+def finish(run: Run) -> dict:
+    """Save the trained agent, then a final evaluation; the run's figures."""
+    a, s, dev = run.args, run.state, next(run.agent.parameters()).device
+    save(run)  # before the final evaluation, so Ctrl-C there loses nothing
+    try:
+        rets, succ = evaluate(run.agent, run.frozen, a, a.eval_episodes, "none", 10**6 + 1, dev)
+    except KeyboardInterrupt:
+        run.writer.close()
+        print(f"[{TAG}] interrupted in the final evaluation; the agent is saved at {run.agent_path}")
+        raise SystemExit(130) from None
+    run.writer.add_scalar("eval/episodic_return", rets.mean(), s.env_steps)
+    run.writer.close()
+    result = {
+        "env_steps": s.env_steps,
+        "train_flops": s.flops,
+        "criterion_step": s.criterion_step,
+        "final_return": float(rets.mean()),
+        "wall_s": time.time() - run.t0,
+    }
+    if run.ref:
+        result["final_normalised_return"] = run.normalise(float(rets.mean()))
+    if a.env == "robodesk":
+        result["final_success_count"] = float(succ.mean())
+    print(f"[{TAG}] done: {result}; agent checkpoint {run.agent_path}")
+    return result
+
+
+def evaluate_checkpoint(agent: Agent, observer: Observer, args: Args, frozen: dict, path: Path, dev) -> dict:
+    """--eval-only: the modality ablation of a trained agent (paper section "Modality Ablation
+    Robustness"): --eval-episodes fresh episodes with --drop removed."""
+    agent.load_state_dict(load_agent_checkpoint(path, args, frozen)["agent"])
+    rets, succ = evaluate(agent, observer, args, args.eval_episodes, args.drop, args.seed + 10**6, dev)
+    sem = rets.std(ddof=1) / math.sqrt(len(rets)) if len(rets) > 1 else 0.0
+    out = {"drop": args.drop, "return_mean": float(rets.mean()), "return_sem": float(sem)}
+    line = f"[eval] drop={args.drop}: return {rets.mean():.2f} ± {sem:.2f} (s.e.m., {len(rets)} episodes)"
+    if args.env == "simple_shapes":
+        lo, hi = ss_reference_returns()
+        out["normalised_return"] = (out["return_mean"] - lo) / (hi - lo)
+        line += f", normalised {out['normalised_return']:.3f}"
+    if args.env == "robodesk":
+        out["success_count"] = float(succ.mean())
+        line += f", success count {succ.mean():.1f}"
+    print(line)
+    return out
+
+
+def interrupted(run: Run) -> None:
+    """Ctrl-C or SIGTERM: the step and its updates are done; save and exit 130."""
+    save(run)
+    run.writer.close()
+    print(
+        f"[{TAG}] interrupted at env step {run.state.env_steps:,}: saved {run.agent_path}; "
+        "the same command with --resume continues the run",
+        flush=True,
+    )
+    raise SystemExit(130)  # the shell's code for a run ended by Ctrl-C
+
+
+# --------------------------------------------------------------------------------------------------
+# CleanRL's PPO loop
 # --------------------------------------------------------------------------------------------------
 def main(args: Args) -> dict:
     check_settings(args)
@@ -825,117 +1056,25 @@ def main(args: Args) -> dict:
     dev = torch.device(args.device)
     observer, frozen = load_observer(args)
     observer = observer.to(dev)
-    task = "" if args.env == "simple_shapes" else f"_{args.task}"
-    run_name = f"{args.exp_name}_{args.variant}_{args.env}{task}_s{args.seed}"
-    ck_root = Path(args.checkpoint_dir) / args.env
-    agent_path = Path(args.checkpoint) if args.checkpoint else ck_root / "agents" / f"{run_name}.pt"
-    runs_dir = Path("runs") / run_name
     discrete = args.env == "simple_shapes"
     n_actions = 7 if discrete else 5
-
     random.seed(args.seed)
     np.random.seed(args.seed)
     torch.manual_seed(args.seed)
     agent = Agent(observer, args, n_actions, discrete).to(dev)
-    ref = ss_reference_returns() if args.env == "simple_shapes" else None
-
-    def normalise(ret: float) -> float:
-        return (ret - ref[0]) / (ref[1] - ref[0]) if ref else float("nan")
-
+    default = Path(args.checkpoint_dir) / args.env / "agents" / f"{run_name(args)}.pt"
+    agent_path = Path(args.checkpoint) if args.checkpoint else default
     if args.eval_only:
-        agent.load_state_dict(load_agent_checkpoint(agent_path, args, frozen)["agent"])
-        rets, succ = evaluate(agent, observer, args, args.eval_episodes, args.drop, args.seed + 10**6, dev)
-        sem = rets.std(ddof=1) / math.sqrt(len(rets)) if len(rets) > 1 else 0.0
-        out = {"drop": args.drop, "return_mean": float(rets.mean()), "return_sem": float(sem)}
-        line = f"[eval] drop={args.drop}: return {rets.mean():.2f} ± {sem:.2f} (s.e.m., {len(rets)} episodes)"
-        if ref:
-            out["normalised_return"] = normalise(float(rets.mean()))
-            line += f", normalised {out['normalised_return']:.3f}"
-        if args.env == "robodesk":
-            out["success_count"] = float(succ.mean())
-            line += f", success count {succ.mean():.1f}"
-        print(line)
-        return out
-
-    # Nothing of an earlier run is overwritten by accident, and the output folders take files now.
-    claim_outputs([agent_path, runs_dir], args.resume, args.overwrite)
-    ensure_writable(agent_path.parent)
-    ensure_writable(runs_dir)
-    optimizer = torch.optim.Adam(agent.parameters(), lr=args.learning_rate, eps=1e-5)
+        return evaluate_checkpoint(agent, observer, args, frozen, agent_path, dev)
     batch_size = args.num_envs * args.num_steps  # agent steps per rollout
     repeat = ACTION_REPEAT[args.env]  # env steps (the paper's unit, frames on RoboDesk) per agent step
     num_iterations = max(args.total_steps // (batch_size * repeat), 1)
-    state = {"iteration": 0, "env_steps": 0, "flops": 0, "flops_per_minibatch": 0, "recent": [],
-             "criterion_step": None, "episodes": 0}  # fmt: skip
-    reward_norm = RewardNormalizer(args.num_envs, args.gamma, args.norm_reward)
-    if args.resume:
-        ck = load_agent_checkpoint(agent_path, args, frozen)
-        agent.load_state_dict(ck["agent"])
-        optimizer.load_state_dict(ck["optimizer"])
-        state.update(ck["state"])
-        reward_norm.load_state_dict(ck["reward_norm"])
-        torch.set_rng_state(ck["torch_rng"])
-        np.random.set_state(ck["np_rng"])
-        print(f"[ppo] resuming {agent_path} at env step {state['env_steps']:,}")
-
-    writer = SummaryWriter(str(runs_dir))
-    if not args.resume:
-        writer.add_text(
-            "hyperparameters",
-            "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in vars(args).items()),
-        )
-    n_params = sum(p.numel() for p in agent.parameters())
-    print(f"[ppo] {args.variant} PPO on {args.env}{task}: {n_params:,} trainable parameters, "
-          f"{num_iterations} rollouts of {batch_size:,} steps")  # fmt: skip
-    if ref:
-        print(f"[ppo] normalised return: random policy {ref[0]:.1f} -> 0, greedy policy {ref[1]:.1f} -> 1")
-
-    def save() -> None:
-        atomic_save(
-            {
-                "kind": "ppo",
-                "env": args.env,
-                "task": args.task,
-                "variant": args.variant,
-                "args": asdict(args),
-                "fingerprint": frozen["fingerprint"],
-                "frozen_paths": frozen["paths"],
-                "agent": agent.state_dict(),
-                "optimizer": optimizer.state_dict(),
-                "state": state,
-                "reward_norm": reward_norm.state_dict(),
-                "torch_rng": torch.get_rng_state(),
-                "np_rng": np.random.get_state(),
-            },
-            agent_path,
-        )
-
-    def log_episode(ret: float, success: float) -> None:
-        state["episodes"] += 1
-        step = state["env_steps"]
-        writer.add_scalar("charts/episodic_return", ret, step)
-        if args.env == "robodesk":
-            writer.add_scalar("charts/success_count", success, step)
-            return
-        state["recent"] = (state["recent"] + [normalise(ret)])[-args.smoothing :]
-        smooth = float(np.mean(state["recent"]))
-        writer.add_scalar("charts/normalised_return", normalise(ret), step)
-        writer.add_scalar("charts/smoothed_normalised_return", smooth, step)
-        if (
-            state["criterion_step"] is None
-            and len(state["recent"]) == args.smoothing
-            and smooth >= args.criterion
-        ):
-            state["criterion_step"] = step
-            writer.add_scalar("charts/criterion_step", step, step)
-            print(
-                f"[ppo] return criterion ({args.criterion}) reached at env step {step:,}, "
-                f"{(time.time() - t0) / 60:.1f} min into this run"
-            )
+    run = start_run(args, observer, agent, frozen, agent_path, num_iterations)
+    state, optimizer = run.state, run.optimizer
 
     # Rollout storage (T, N, ...); observations keep the stacked frames the policy saw.
     envs_ = make_envs(args, args.num_envs)
-    obs, _ = envs_.reset(seed=args.seed + state["env_steps"])
+    obs, _ = envs_.reset(seed=args.seed + state.env_steps)
     stack = FrameStack(args.frame_stack)
     x = stack.reset(observer(obs, "none", dev))
     store = {k: torch.zeros((args.num_steps, *v.shape), dtype=v.dtype, device=dev) for k, v in x.items()}
@@ -946,16 +1085,16 @@ def main(args: Args) -> dict:
         torch.zeros((args.num_steps, args.num_envs), device=dev) for _ in range(4)
     )
     ep_ret, ep_succ = np.zeros(args.num_envs), np.zeros(args.num_envs)
-    t0, steps0, stats = time.time(), state["env_steps"], {}
-
-    stop = StopRequest("ppo")  # Ctrl-C: the rollout and its update finish, then the run saves and exits
-    while state["iteration"] < num_iterations:
-        if args.stop_at_criterion and state["criterion_step"] is not None:
+    stats = {}
+    stop = StopRequest(TAG)  # Ctrl-C: the rollout and its update finish, then the run saves and exits
+    while state.iteration < num_iterations:
+        if args.stop_at_criterion and state.criterion_step is not None:
             break
-        state["iteration"] += 1
+        state.iteration += 1
         if args.anneal_lr:
-            frac = 1.0 - (state["iteration"] - 1.0) / num_iterations
+            frac = 1.0 - (state.iteration - 1.0) / num_iterations
             optimizer.param_groups[0]["lr"] = frac * args.learning_rate
+        # Rollout: num_steps steps of every environment with the current policy.
         for t in range(args.num_steps):
             for k in store:
                 store[k][t] = x[k]
@@ -963,32 +1102,23 @@ def main(args: Args) -> dict:
                 action, logp, _, value = agent.get_action_and_value(x)
             actions[t], logprobs[t], values[t] = action, logp, value
             obs, r, term, trunc, info = envs_.step(env_action(action, discrete))
-            state["env_steps"] += args.num_envs * repeat
+            state.env_steps += args.num_envs * repeat
             ep_ret += r
             ep_succ += step_success(info, args.num_envs)
-            r = torch.as_tensor(reward_norm(r, term | trunc), dtype=torch.float32, device=dev)
+            r = torch.as_tensor(run.reward_norm(r, term | trunc), dtype=torch.float32, device=dev)
             frame = observer(obs, "none", dev)
             x = stack.push(frame)
             ends = np.flatnonzero(term | trunc)
             if len(ends):
-                # A time-limit truncation is not an end of the task: bootstrap its reward with the value
-                # of its final observation (stable-baselines3 does the same).
-                cut = np.flatnonzero(trunc & ~term)
-                if len(cut):
-                    final = observer(final_observations(info, cut), "none", dev)
-                    x_final = {}
-                    for k, v in final.items():  # the stack before this step's push, plus the final frame
-                        prev = store[k][t][cut]
-                        x_final[k] = torch.cat([prev[:, v.shape[1] :], v], 1)
-                    with torch.no_grad():
-                        r[cut] += args.gamma * agent.get_value(x_final)
+                bootstrap_truncations(run, r, info, term, trunc, {k: v[t] for k, v in store.items()})
                 x = stack.reset(frame, ends)
                 for i in ends:
-                    log_episode(float(ep_ret[i]), float(ep_succ[i]))
+                    log_episode(run, float(ep_ret[i]), float(ep_succ[i]))
                 ep_ret[ends], ep_succ[ends] = 0.0, 0.0
             rewards[t] = r
             terms[t] = torch.as_tensor(term | trunc, dtype=torch.float32, device=dev)
 
+        # Advantages (GAE), then update_epochs passes of minibatch updates over the rollout.
         with torch.no_grad():
             advantages = gae(rewards, values, agent.get_value(x), terms, args)
             returns = advantages + values
@@ -1008,85 +1138,29 @@ def main(args: Args) -> dict:
                     k: ({kk: vv[idx] for kk, vv in v.items()} if k == "obs" else v[idx])
                     for k, v in flat.items()
                 }
-
-                def update(mb=mb):
-                    loss, terms_ = ppo_loss(agent, mb, args)
-                    if not torch.isfinite(loss):
-                        raise FloatingPointError(
-                            f"non-finite PPO loss at env step {state['env_steps']:,}; "
-                            f"the last good checkpoint is {agent_path}"
+                try:
+                    if state.flops_per_minibatch == 0:  # same shapes every minibatch: count the first one
+                        stats, state.flops_per_minibatch = count_flops(
+                            lambda mb=mb: ppo_update(agent, optimizer, mb, args, state.env_steps)
                         )
-                    optimizer.zero_grad(set_to_none=True)
-                    loss.backward()
-                    nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)
-                    optimizer.step()
-                    return terms_
-
-                if state["flops_per_minibatch"] == 0:  # same shapes every minibatch: count the first one
-                    stats, state["flops_per_minibatch"] = count_flops(update)
-                else:
-                    stats = update()
-                state["flops"] += state["flops_per_minibatch"]
+                    else:
+                        stats = ppo_update(agent, optimizer, mb, args, state.env_steps)
+                except FloatingPointError as err:
+                    raise FloatingPointError(f"{err}; the last good checkpoint is {agent_path}") from err
+                state.flops += state.flops_per_minibatch
             if args.target_kl is not None and stats["approx_kl"] > args.target_kl:
                 break
 
-        step = state["env_steps"]
-        var_y = flat["returns"].var()
-        explained = (
-            float("nan") if var_y == 0 else (1 - (flat["returns"] - flat["values"]).var() / var_y).item()
-        )
-        sps = (step - steps0) / max(time.time() - t0, 1e-9)
-        for k, v in stats.items():
-            writer.add_scalar(f"losses/{k}", v.item(), step)
-        writer.add_scalar("losses/explained_variance", explained, step)
-        writer.add_scalar("charts/learning_rate", optimizer.param_groups[0]["lr"], step)
-        writer.add_scalar("charts/SPS", sps, step)
-        writer.add_scalar("charts/train_flops", state["flops"], step)
-        smooth = np.mean(state["recent"]) if state["recent"] else float("nan")
-        print(
-            f"[ppo] step {step:,}/{num_iterations * batch_size * repeat:,} {sps:.0f} steps/s | "
-            f"value loss {stats['value_loss'].item():.3f} entropy {stats['entropy'].item():.3f} "
-            f"smoothed normalised return {smooth:.3f}",
-            flush=True,
-        )
-        if state["iteration"] % args.save_every == 0 or stop.requested:
-            save()
+        log_iteration(run, stats, flat, num_iterations * batch_size * repeat)
+        if state.iteration % args.save_every == 0 and not stop.requested:
+            save(run)
         if stop.requested:
             envs_.close()
-            writer.close()
             stop.restore()
-            print(
-                f"[ppo] interrupted at env step {step:,}: saved {agent_path}; "
-                "the same command with --resume continues the run",
-                flush=True,
-            )
-            raise SystemExit(130)  # the shell's code for a run ended by Ctrl-C
-
-    # The trained agent is saved before the final evaluation, so Ctrl-C there loses nothing.
-    save()
+            interrupted(run)
     stop.restore()
     envs_.close()
-    try:
-        rets, succ = evaluate(agent, observer, args, args.eval_episodes, "none", 10**6 + 1, dev)
-    except KeyboardInterrupt:
-        writer.close()
-        print(f"[ppo] interrupted in the final evaluation; the agent is saved at {agent_path}")
-        raise SystemExit(130) from None
-    writer.add_scalar("eval/episodic_return", rets.mean(), state["env_steps"])
-    writer.close()
-    result = {
-        "env_steps": state["env_steps"],
-        "train_flops": state["flops"],
-        "criterion_step": state["criterion_step"],
-        "final_return": float(rets.mean()),
-        "wall_s": time.time() - t0,
-    }
-    if ref:
-        result["final_normalised_return"] = normalise(float(rets.mean()))
-    if args.env == "robodesk":
-        result["final_success_count"] = float(succ.mean())
-    print(f"[ppo] done: {result}; agent checkpoint {agent_path}")
-    return result
+    return finish(run)
 
 
 if __name__ == "__main__":

@@ -77,10 +77,6 @@ class Args:
     n_samples: int | None = None
     """samples to collect (default: 500,000 Simple Shapes; RoboDesk 2,000,000, the paper's 1M random + 1M
     expert; use 3,500,000 for its six-task dataset)"""
-    wide_share: float = 0.0
-    """Simple Shapes: share of samples whose position is drawn from 16 px before to 16 px past the frame
-    (envs.simple_shapes.WIDE_POSITIONS) instead of the dataset's [7, 25), so that the frozen GW also
-    represents the states an agent reaches by pushing the shape out (0: the paper's dataset draw)"""
     expert_checkpoint: tuple[str, ...] = ()
     """RoboDesk expert policies from dreamer_baseline.py (its <agent>.policy.pt2 files, or the agent .pt
     beside them), one per task: each collects its own task's expert share instead of the scripted expert"""
@@ -138,6 +134,12 @@ class Args:
     """held-out samples for the final evaluation figures"""
     torch_threads: int = 0
     """torch CPU threads (0: torch's default)"""
+
+    # -- an experiment, not the paper's data (docs/experiments.md, "Why runs stalled: off frame") ------
+    wide_share: float = 0.0
+    """Simple Shapes: share of samples whose position is drawn from 16 px before to 16 px past the frame
+    (envs.simple_shapes.WIDE_POSITIONS) instead of the dataset's [7, 25), so that the frozen GW also
+    represents the states an agent reaches by pushing the shape out (0: the paper's dataset draw)"""
 
     def resolve_tables(self) -> Args:
         """Fill the per-environment defaults of the appendix tables."""
@@ -646,10 +648,12 @@ class LearnedExpert:
         m = self.program.meta
         noise_z = torch.rand(1, *m["latents"], generator=self.gen)
         noise_a = torch.randn(1, m["actions"], generator=self.gen)
-        action, self.deter, self.stoch = self.program.program(
-            torch.as_tensor(obs["image"])[None], torch.as_tensor(obs["attr"], dtype=torch.float32)[None],
-            self.deter, self.stoch, self.prev, self.first, noise_z, noise_a,
-        )  # fmt: skip
+        image, attr = (
+            torch.as_tensor(obs["image"])[None],
+            torch.as_tensor(obs["attr"], dtype=torch.float32)[None],
+        )
+        state = (self.deter, self.stoch, self.prev, self.first)
+        action, self.deter, self.stoch = self.program.program(image, attr, *state, noise_z, noise_a)
         self.prev, self.first = action, torch.zeros(1)
         a = action[0].numpy().astype(np.float64)
         return np.clip(a + self.rng.normal(0, self.noise, a.shape), -1, 1) if self.noise else a
@@ -706,8 +710,8 @@ def collect_robodesk(
         nonlocal have
         while len(buf["attr"]) >= args.shard_size or (force and buf["attr"]):
             k = min(args.shard_size, len(buf["attr"]))
-            write_shard(folder, np.stack(buf["image"][:k]), np.stack(buf["attr"][:k]), buf["source"][:k],
-                        buf["task"][:k])  # fmt: skip
+            images, attrs = np.stack(buf["image"][:k]), np.stack(buf["attr"][:k])
+            write_shard(folder, images, attrs, buf["source"][:k], buf["task"][:k])
             for key in buf:
                 del buf[key][:k]
             have += k

@@ -67,18 +67,17 @@ def measure(setting: str, a: Args) -> dict:
             )
             for k, shp in spaces.items()
         }
-        entry |= {"action": np.eye(agent.n_actions)[[t % agent.n_actions]], "reward": [-1.0],
-                  "terminal": [0.0], "first": [float(t % 100 == 0)]}  # fmt: skip
+        entry |= {"action": np.eye(agent.n_actions)[[t % agent.n_actions]], "reward": [-1.0]}
+        entry |= {"terminal": [0.0], "first": [float(t % 100 == 0)]}
         replay.add(np.array([0]), entry)
-    state = {"env_steps": 0, "updates": 0, "return_scale": 0.0}
     if a.device.startswith("cuda"):
         torch.cuda.reset_peak_memory_stats()
-    _, flops = D.count_flops(lambda: D.train_update(agent, opts, replay, args, state, a.device))
+    _, flops = D.count_flops(lambda: D.train_update(agent, opts, replay, args))
     if a.device.startswith("cuda"):
         torch.cuda.synchronize()
     t = time.perf_counter()
     for _ in range(a.updates):
-        D.train_update(agent, opts, replay, args, state, a.device)
+        D.train_update(agent, opts, replay, args)
     if a.device.startswith("cuda"):
         torch.cuda.synchronize()
     sec = (time.perf_counter() - t) / a.updates

@@ -27,7 +27,12 @@ import numpy as np
 import torch
 import tyro
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path[:0] = [
+    str(Path(__file__).resolve().parents[1]),
+    str(Path(__file__).resolve().parent / "experiments"),
+]
+import gw_dreamer_experiments as X  # noqa: E402
+
 import gw_dreamer as G  # noqa: E402
 from envs.simple_shapes import ACTION_DELTAS, N_ACTIONS, SimpleShapesVectorEnv, reward_and_goal  # noqa: E402
 
@@ -73,7 +78,7 @@ def dream_advantages(agent: G.Agent, replay: G.Replay, args: G.Args) -> dict:
     b = {k: torch.as_tensor(v) for k, v in replay.sample(64, 32).items()}
     h_entry = G.world_model_loss(agent.wm, agent.reward_dec, b, args)[2]
     h0, z0, _ = G.dream_starts(h_entry, b, "all")
-    feats, acts, rews, conts = G.imagine(agent.wm, agent.actor, agent.reward_dec, h0, z0, 20, agent.ac_input)
+    feats, acts, rews, conts = G.imagine(agent, h0, z0, 20)
     values = agent.twohot.mean(agent.critic(feats))
     returns = G.lambda_returns(rews, conts, values, args.gamma, args.lam)
     adv, taken = returns - values[:-1], acts.argmax(-1)
@@ -178,13 +183,14 @@ def greedy_episodes(agent, encoder, args, a: Args) -> tuple[np.ndarray, float]:
 
 if __name__ == "__main__":
     a = tyro.cli(Args)
-    args = G.Args(env="simple_shapes").resolve()
     encoder = G.load_encoder("simple_shapes", Path(a.vae_checkpoint), Path(a.gw_checkpoint))
     saved = torch.load(a.checkpoint, map_location="cpu", weights_only=False)["args"]
-    ac_input = saved.get("ac_input", "h")
-    args.ac_input, args.reward_loss = ac_input, saved["reward_loss"]  # the agent's own network settings
-    ck = G.load_agent_checkpoint(Path(a.checkpoint), args, G.gw_fingerprint(encoder))
-    agent = G.Agent("simple_shapes", encoder.z_dim, ck["args"]["reward_loss"], ac_input)
+    # the agent's own network settings, experiments included (benchmarks/experiments/)
+    args = X.Args(
+        env="simple_shapes", **{k: saved[k] for k in ("reward_loss", *G.EXPERIMENT_KEYS) if k in saved}
+    )
+    ck = G.load_agent_checkpoint(Path(a.checkpoint), args.resolve(), G.gw_fingerprint(encoder))
+    agent = X.experiment_agent(args)("simple_shapes", encoder.z_dim, args.reward_loss)
     agent.load_state_dict(ck["agent"])
     agent.eval()
     replay = G.Replay(args.buffer_size, 1, encoder.z_dim, N_ACTIONS, a.seed)
@@ -233,7 +239,7 @@ if __name__ == "__main__":
         agent, replay, G.Args(env="simple_shapes", **{k: ck["args"][k] for k in ("gamma", "lam")})
     )
     print(
-        f"6. dreams: mean lambda-return {d['return']:.1f}, return scale {ck['state']['return_scale']:.1f}, "
+        f"6. dreams: mean lambda-return {d['return']:.1f}, return scale {float(agent.return_scale.ema):.1f}, "
         f"advantage {d['adv'][0]:.1f} ± {d['adv'][1]:.1f} (mean ± std); per action (share, mean advantage): "
         + " ".join(f"{k}:({share:.3f}, {mean:.1f})" for k, (share, mean) in d["per_action"].items())
     )

@@ -51,22 +51,21 @@ def measure(env: str, a: Args, **overrides) -> dict:
     for t in range(2_000):
         u = rng.normal(size=(2, 1, spec["latent"]))
         replay.add([0], u[0], u[1], np.eye(n_act)[[t % n_act]], [-1.0], [0], [t % 100 == 0], [0])
-    state = {"env_steps": 0, "updates": 0, "gw_updates": 0, "return_scale": 0.0}
 
     def step():
-        E.train_update(agent, opts, replay, args, state, a.device)
+        E.train_update(agent, opts, replay, args)
 
     def gw_only():
-        for _ in range(args.gw_updates):
-            E.gw_update(agent, opts["gw"], replay, args, state, a.device)
+        for i in range(args.gw_updates):
+            E.gw_update(agent, opts["gw"], replay, args, i)
 
     _, flops = E.count_flops(step)
     _, gw_flops = E.count_flops(gw_only)
     step()
     sec, gw_sec = timed(step, a), timed(gw_only, a)
     starts = args.batch_size * (1 if args.imag_from == "last" else args.batch_length)
-    return {"starts": starts, "gw_batch": args.gw_batch_size, "s": sec, "gw_s": gw_sec, "flops": flops,
-            "gw_flops": gw_flops, "env_steps_per_s": args.train_ratio / sec}  # fmt: skip
+    out = {"starts": starts, "gw_batch": args.gw_batch_size, "s": sec, "gw_s": gw_sec, "flops": flops}
+    return out | {"gw_flops": gw_flops, "env_steps_per_s": args.train_ratio / sec}
 
 
 if __name__ == "__main__":

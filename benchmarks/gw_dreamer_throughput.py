@@ -65,14 +65,13 @@ def time_updates(env: str, a: Args, **overrides) -> dict:
     for t in range(2_000):
         z = rng.uniform(-1, 1, (1, G.ENV_SPECS[env]["z"]))
         replay.add([0], z, np.eye(n_act)[[t % n_act]], [-1.0], [0], [t % 100 == 0], [0])
-    state = {"env_steps": 0, "updates": 0, "return_scale": 0.0}
-    _, flops = G.count_flops(lambda: G.train_update(agent, opts, replay, args, state, a.device))
-    G.train_update(agent, opts, replay, args, state, a.device)
+    _, flops = G.count_flops(lambda: G.train_update(agent, opts, replay, args))
+    G.train_update(agent, opts, replay, args)
     if a.device.startswith("cuda"):
         torch.cuda.synchronize()
     t = time.perf_counter()
     for _ in range(a.updates):
-        G.train_update(agent, opts, replay, args, state, a.device)
+        G.train_update(agent, opts, replay, args)
     if a.device.startswith("cuda"):
         torch.cuda.synchronize()
     sec = (time.perf_counter() - t) / a.updates

@@ -77,8 +77,8 @@ def measure(env: str, variant: str, a: Args) -> dict:
     batch = {k: v.repeat(reps, *[1] * (v.dim() - 1))[:n] for k, v in batch.items()}
     with torch.no_grad():
         actions, logp, _, values = agent.get_action_and_value(batch)
-    mb = {"obs": batch, "actions": actions, "logprobs": logp, "advantages": torch.randn(n, device=a.device),
-          "returns": torch.randn(n, device=a.device), "values": values}  # fmt: skip
+    mb = {"obs": batch, "actions": actions, "logprobs": logp, "values": values}
+    mb |= {"advantages": torch.randn(n, device=a.device), "returns": torch.randn(n, device=a.device)}
     opt = torch.optim.Adam(agent.parameters(), lr=3e-4)
 
     def update():

@@ -16,11 +16,10 @@ os.environ.setdefault("MUJOCO_GL", "egl")  # before anything imports mujoco
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # the repository root (envs/, scripts)
 
-TINY_PRETRAIN = [
-    "--n-samples", "600", "--shard-size", "300", "--vae-steps", "12", "--vae-batch-size", "16",
-    "--vae-width", "32", "--gw-steps", "20", "--gw-batch-size", "32", "--log-every", "5",
-    "--save-every", "5", "--eval-size", "60",
-]  # fmt: skip
+TINY_PRETRAIN = (
+    "--n-samples 600 --shard-size 300 --vae-steps 12 --vae-batch-size 16 --vae-width 32 --gw-steps 20"
+    " --gw-batch-size 32 --log-every 5 --save-every 5 --eval-size 60"
+).split()
 
 
 def run_cli(script: str, cwd: Path, *args: str, timeout: int = 300) -> subprocess.CompletedProcess:
@@ -40,10 +39,8 @@ def run_script(script: str, cwd: Path, *args: str, timeout: int = 300) -> str:
 def interrupt_cli(script: str, cwd: Path, ready: str, *args: str) -> tuple[int, str]:
     """Run a script through its CLI, press Ctrl-C (SIGINT) once it prints a line containing ``ready``,
     and return (its exit code, its whole output)."""
-    proc = subprocess.Popen(
-        [sys.executable, str(ROOT / script), *args], cwd=cwd, stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT, text=True,
-    )  # fmt: skip
+    command = [sys.executable, str(ROOT / script), *args]
+    proc = subprocess.Popen(command, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines = []
     for line in proc.stdout:
         lines.append(line)
@@ -105,6 +102,15 @@ def assert_episodes_separated(replay: dict) -> None:
         starts = np.flatnonzero(replay["first"][i, 1:n]) + 1
         assert len(starts) > 0
         assert np.all(replay["last"][i, starts - 1] == 1), starts[replay["last"][i, starts - 1] != 1]
+
+
+def previous_layout(src: Path, dst: Path) -> None:
+    """``src`` rewritten as agent checkpoints were saved before the return scale became a module of the
+    agent (a float ``return_scale`` in the loop state, no ``return_scale.*`` buffers)."""
+    ck = torch.load(src, weights_only=False)
+    ck["state"]["return_scale"] = float(ck["agent"].pop("return_scale.ema"))
+    del ck["agent"]["return_scale.count"]
+    torch.save(ck, dst)
 
 
 def run_pretrain(tmp_path: Path, *extra: str) -> str:

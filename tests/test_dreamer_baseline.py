@@ -8,15 +8,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import DREAMER_SMALL, interrupt_run, run_pretrain, run_script, tiny_agent_args
+from conftest import DREAMER_SMALL, interrupt_run, previous_layout, run_pretrain, run_script, tiny_agent_args
 
 import dreamer_baseline as D
 import pretrain_vae_gw as P
 
 SMALL = [arg for k, v in DREAMER_SMALL.items() for arg in (f"--{k.replace('_', '-')}", str(v))]
-TINY = [*SMALL, "--learning-starts", "100", "--batch-size", "4", "--batch-length", "8",
-        "--train-ratio", "16", "--imag-horizon", "5", "--eval-episodes", "2", "--video-every", "0",
-        "--log-every", "100"]  # fmt: skip
+TINY = [
+    *SMALL,
+    *"--learning-starts 100 --batch-size 4 --batch-length 8 --train-ratio 16 --imag-horizon 5".split(),
+    *"--eval-episodes 2 --video-every 0 --log-every 100".split(),
+]
+SS = ("--env", "simple_shapes", "--checkpoint-dir")  # followed by the folder
 RD = ["--env", "robodesk", "--task", "push_green", "--render-quality", "fast", "--episode-length", "40"]
 
 
@@ -41,10 +44,8 @@ def test_parameter_count_matches_the_table_within_10_percent(env, size):
 def ss_run(tmp_path_factory):
     """300 steps of Dreamer (raw observations) on Simple Shapes through the CLI, saving at 150 and the end."""
     tmp = tmp_path_factory.mktemp("dreamer_ss")
-    log = run_script(
-        "dreamer_baseline.py", tmp, "--env", "simple_shapes", "--checkpoint-dir", str(tmp / "ck"), *TINY,
-        "--total-steps", "300", "--eval-every", "150", "--save-every", "150", "--video-every", "300",
-    )  # fmt: skip
+    more = "--total-steps 300 --eval-every 150 --save-every 150 --video-every 300".split()
+    log = run_script("dreamer_baseline.py", tmp, *SS, str(tmp / "ck"), *TINY, *more)
     return tmp, log, agent_path(tmp / "ck" / "simple_shapes", "dreamer_raw_2m_simple_shapes_s1")
 
 
@@ -59,8 +60,8 @@ def test_simple_shapes_cli_run_trains_saves_and_logs(ss_run):
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     acc = EventAccumulator(str(tmp / "runs" / "dreamer_raw_2m_simple_shapes_s1")).Reload()
-    for tag in ("charts/episodic_return", "charts/normalised_return", "charts/SPS", "losses/loss_wm",
-                "losses/kl", "losses/loss_image", "eval/episodic_return"):  # fmt: skip
+    tags = "charts/episodic_return charts/normalised_return charts/SPS losses/loss_wm losses/kl"
+    for tag in (*tags.split(), "losses/loss_image", "eval/episodic_return"):
         assert tag in acc.Tags()["scalars"], tag
     assert "dreams/real_top_imagined_bottom" in acc.Tags()["images"]
 
@@ -79,10 +80,8 @@ def test_replay_holds_dreamerv3_entries(ss_run):
 
 def test_resume_continues_the_saved_run(ss_run):
     tmp, _, agent = ss_run
-    log = run_script(
-        "dreamer_baseline.py", tmp, "--env", "simple_shapes", "--checkpoint-dir", str(tmp / "ck"), *TINY,
-        "--total-steps", "400", "--resume", "--eval-every", "1000", "--save-every", "1000",
-    )  # fmt: skip
+    more = "--total-steps 400 --resume --eval-every 1000 --save-every 1000".split()
+    log = run_script("dreamer_baseline.py", tmp, *SS, str(tmp / "ck"), *TINY, *more)
     assert "resuming" in log and "at env step 300" in log
     ck = torch.load(agent, weights_only=False)
     assert ck["state"]["env_steps"] == 400 and ck["state"]["updates"] == (400 - 100) * 16 // 32
@@ -90,10 +89,8 @@ def test_resume_continues_the_saved_run(ss_run):
 
 def test_eval_only_with_each_drop_and_size_mismatch(ss_run, pretrained):
     tmp, _, agent = ss_run
-    log = run_script(
-        "dreamer_baseline.py", tmp, "--env", "simple_shapes", *SMALL, "--eval-only", "--checkpoint",
-        str(agent), "--drop", "vision", "--eval-episodes", "3",
-    )  # fmt: skip
+    more = ["--eval-only", "--checkpoint", str(agent), "--drop", "vision", "--eval-episodes", "3"]
+    log = run_script("dreamer_baseline.py", tmp, "--env", "simple_shapes", *SMALL, *more)
     assert "drop=vision: return" in log and "3 episodes" in log
     for drop in ("none", "attr"):
         out = D.main(
@@ -102,6 +99,16 @@ def test_eval_only_with_each_drop_and_size_mismatch(ss_run, pretrained):
         assert out["drop"] == drop and math.isfinite(out["normalised_return"])
     with pytest.raises(D.UsageError, match="was trained with --deter 64 .*; pass --deter 64"):
         D.main(D.Args(eval_only=True, checkpoint=str(agent)))
+
+
+def test_a_checkpoint_of_the_previous_layout_still_evaluates(ss_run, pretrained, tmp_path):
+    """An agent saved with the return scale in the loop state (the layout before it became part of the
+    agent) evaluates to the same returns as the current layout."""
+    _, _, agent = ss_run
+    previous_layout(agent, tmp_path / "old.pt")
+    paths = (agent, tmp_path / "old.pt")
+    runs = [D.main(small_args(pretrained, eval_only=True, checkpoint=str(p), eval_episodes=2)) for p in paths]
+    assert runs[0] == runs[1]
 
 
 def test_dropping_a_modality_zeroes_its_input(pretrained):
@@ -135,10 +142,8 @@ def test_dropping_a_modality_zeroes_its_input(pretrained):
 
 def test_vae_dreamer_cli_run(pretrained):
     tmp = pretrained[0]
-    log = run_script(
-        "dreamer_baseline.py", tmp, "--env", "simple_shapes", "--obs", "vae", "--checkpoint-dir",
-        str(tmp / "ck"), *TINY, "--total-steps", "200", "--eval-every", "1000",
-    )  # fmt: skip
+    more = "--obs vae --total-steps 200 --eval-every 1000".split()
+    log = run_script("dreamer_baseline.py", tmp, *SS, str(tmp / "ck"), *TINY, *more)
     assert "VAE-Dreamer 2m with custom widths" in log and "done:" in log
     ck = torch.load(
         agent_path(tmp / "ck" / "simple_shapes", "dreamer_vae_2m_simple_shapes_s1"), weights_only=False
@@ -151,11 +156,10 @@ def rd_run(pretrained_robodesk):
     """Dreamer (raw) on RoboDesk push_green, 60 actions (240 frames, the step unit) of 10-action episodes;
     its policy is an expert."""
     tmp = pretrained_robodesk[0]
+    more = "--total-steps 240 --learning-starts 80 --batch-size 2 --eval-episodes 1 --eval-every 1000".split()
     log = run_script(
-        "dreamer_baseline.py", tmp, *RD, "--checkpoint-dir", str(tmp / "ck"), *TINY, "--total-steps", "240",
-        "--learning-starts", "80", "--batch-size", "2", "--eval-episodes", "1", "--eval-every", "1000",
-        timeout=600,
-    )  # fmt: skip
+        "dreamer_baseline.py", tmp, *RD, "--checkpoint-dir", str(tmp / "ck"), *TINY, *more, timeout=600
+    )
     return tmp, log, agent_path(tmp / "ck" / "robodesk", "dreamer_raw_12m_robodesk_push_green_s1")
 
 
@@ -165,11 +169,19 @@ def test_robodesk_cli_runs_for_both_observations(rd_run):
     ck = torch.load(agent, weights_only=False)
     # one update per batch_size x batch_length / train_ratio = 2 x 8 / 16 = 1 action (4 frames)
     assert ck["state"]["updates"] == (240 - 80) // 4 and ck["task"] == "push_green"
+    more = (
+        "--obs vae --total-steps 120 --learning-starts 40 --batch-size 2 --eval-episodes 1 --eval-every 1000"
+    )
     log = run_script(
-        "dreamer_baseline.py", tmp, *RD, "--obs", "vae", "--checkpoint-dir", str(tmp / "ck"), *TINY,
-        "--total-steps", "120", "--learning-starts", "40", "--batch-size", "2", "--eval-episodes", "1",
-        "--eval-every", "1000", timeout=600,
-    )  # fmt: skip
+        "dreamer_baseline.py",
+        tmp,
+        *RD,
+        "--checkpoint-dir",
+        str(tmp / "ck"),
+        *TINY,
+        *more.split(),
+        timeout=600,
+    )
     assert "VAE-Dreamer 12m" in log and "final_success_count" in log
 
 
@@ -184,16 +196,23 @@ def test_exported_policy_matches_the_agent_and_feeds_the_collector(rd_run, pretr
     net.load_state_dict(torch.load(agent, weights_only=False)["agent"])
     step = D.PolicyStep(net.eval(), D.Observer("robodesk", "raw", None))
     g = torch.Generator().manual_seed(0)
-    inputs = (torch.randint(0, 255, (3, 64, 64, 3), dtype=torch.uint8, generator=g),
-              torch.randn(3, 76, generator=g), torch.zeros(3, 64), torch.zeros(3, 128), torch.zeros(3, 5),
-              torch.ones(3),
-              torch.rand(3, 32, 4, generator=g), torch.randn(3, 5, generator=g))  # fmt: skip
+    image, attr = (
+        torch.randint(0, 255, (3, 64, 64, 3), dtype=torch.uint8, generator=g),
+        torch.randn(3, 76, generator=g),
+    )
+    state = (
+        torch.zeros(3, 64),
+        torch.zeros(3, 128),
+        torch.zeros(3, 5),
+        torch.ones(3),
+    )  # deter, stoch, a, first
+    inputs = (image, attr, *state, torch.rand(3, 32, 4, generator=g), torch.randn(3, 5, generator=g))
     with torch.no_grad():
         for a, b in zip(step(*inputs), program.program(*inputs), strict=True):
             assert torch.allclose(a, b, atol=1e-5)
     # The collector takes the agent checkpoint (or its .policy.pt2) as the push_green expert.
-    log = run_pretrain(tmp_path, "--env", "robodesk", "--stages", "collect", "--n-samples", "30",
-                       "--render-quality", "fast", "--expert-checkpoint", str(agent))  # fmt: skip
+    collect = "--env robodesk --stages collect --n-samples 30 --render-quality fast".split()
+    log = run_pretrain(tmp_path, *collect, "--expert-checkpoint", str(agent))
     assert f"expert data of push_green: the dreamer_baseline.py policy {policy}" in log
     assert P.label_counts(tmp_path / "data" / "robodesk") == {"expert/push_green": 15, "random/": 15}
     with pytest.raises(ValueError, match="expert for 'push_green', which is not among the tasks collected"):
@@ -230,12 +249,16 @@ def fixed_batch(seed: int = 0) -> dict[str, torch.Tensor]:
             image[b, t, y : y + 6, x : x + 6] = 255
     attr = np.zeros((B, T, 11), np.float32)
     attr[..., :2] = pos / 32.0
-    return {
-        "image": torch.as_tensor(image), "attr": torch.as_tensor(attr),
-        "action": torch.nn.functional.one_hot(torch.ones(B, T, dtype=torch.long), 7).float(),
-        "reward": torch.as_tensor(-pos.sum(-1) / 32.0, dtype=torch.float32),
-        "terminal": torch.zeros(B, T), "first": torch.zeros(B, T).index_fill_(1, torch.tensor([0]), 1.0),
-    }  # fmt: skip
+    first = torch.zeros(B, T).index_fill_(1, torch.tensor([0]), 1.0)
+    action = torch.nn.functional.one_hot(torch.ones(B, T, dtype=torch.long), 7).float()
+    reward = torch.as_tensor(-pos.sum(-1) / 32.0, dtype=torch.float32)
+    batch = {
+        "image": torch.as_tensor(image),
+        "attr": torch.as_tensor(attr),
+        "action": action,
+        "reward": reward,
+    }
+    return batch | {"terminal": torch.zeros(B, T), "first": first}
 
 
 def test_world_model_loss_falls_on_a_fixed_batch(pretrained):
@@ -272,10 +295,8 @@ def test_imagination_gradients_follow_the_actor_gradient_mode(pretrained):
     deter, stoch = torch.randn(6, 64), torch.zeros(6, 128)
     feats, actions, rewards, conts = D.imagine(agent, deter, stoch, 4, grad=False)
     assert feats.shape == (5, 6, 64 + 128) and actions.shape == (4, 6, 5) and not feats.requires_grad
-    feats, actions, rewards, conts = D.imagine(agent, deter, stoch, 4, grad=True)
-    loss_actor, loss_critic, _, _ = D.actor_critic_loss(
-        agent, feats, actions, rewards, conts, torch.ones(6), 0.0, 0, args, dynamics=True
-    )
+    dream = D.imagine(agent, deter, stoch, 4, grad=True)
+    loss_actor, loss_critic, _ = D.actor_critic_loss(agent, dream, torch.ones(6), dynamics=True)
     # Dynamics backpropagation: the actor's loss reaches its weights through the imagined transitions.
     first_layer = agent.actor.net[0][0].weight
     (g_actor,) = torch.autograd.grad(loss_actor, [first_layer], retain_graph=True)
@@ -304,9 +325,6 @@ def test_bad_input_is_explained(tmp_path, pretrained):
 
 
 def test_ctrl_c_saves_the_run_where_it_stopped(tmp_path):
-    state, step = interrupt_run(
-        "dreamer_baseline.py", tmp_path,
-        agent_path(tmp_path / "ck" / "simple_shapes", "dreamer_raw_2m_simple_shapes_s1"),
-        "--env", "simple_shapes", "--checkpoint-dir", str(tmp_path / "ck"), *TINY,
-    )  # fmt: skip
+    agent = agent_path(tmp_path / "ck" / "simple_shapes", "dreamer_raw_2m_simple_shapes_s1")
+    state, step = interrupt_run("dreamer_baseline.py", tmp_path, agent, *SS, str(tmp_path / "ck"), *TINY)
     assert state["updates"] == (step - 100) * 16 // (4 * 8)

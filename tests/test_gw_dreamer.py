@@ -2,21 +2,22 @@
 stop-gradients, two-hot, lambda-returns, the actor-critic on a toy dream, errors."""
 
 import math
+import shutil
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
-from conftest import assert_episodes_separated, interrupt_run, run_script, tiny_agent_args
+from conftest import assert_episodes_separated, interrupt_run, previous_layout, run_script, tiny_agent_args
 
 import gw_dreamer as G
 
-TINY = [
-    "--learning-starts", "100", "--batch-size", "4", "--batch-length", "8",
-    "--imag-horizon", "5", "--train-ratio", "10", "--eval-episodes", "2", "--video-every", "0",
-    "--log-every", "100",
-]  # fmt: skip
+TINY = (
+    "--learning-starts 100 --batch-size 4 --batch-length 8 --imag-horizon 5 --train-ratio 10"
+    " --eval-episodes 2 --video-every 0 --log-every 100"
+).split()
 
 
 def ss_args(pretrained, **kw) -> G.Args:
@@ -29,10 +30,8 @@ def ss_run(pretrained):
     (mid-episode)."""
     tmp = pretrained[0]
     ck = ["--checkpoint-dir", str(tmp / "ck")]
-    log = run_script(
-        "gw_dreamer.py", tmp, "--env", "simple_shapes", *ck, *TINY, "--total-steps", "250",
-        "--eval-every", "150", "--save-every", "150",
-    )  # fmt: skip
+    more = "--total-steps 250 --eval-every 150 --save-every 150".split()
+    log = run_script("gw_dreamer.py", tmp, "--env", "simple_shapes", *ck, *TINY, *more)
     return tmp, log, tmp / "ck" / "simple_shapes" / "agents" / "gw_dreamer_gw_simple_shapes_s1.pt"
 
 
@@ -59,22 +58,44 @@ def test_simple_shapes_cli_run_trains_saves_and_logs(ss_run):
 
 def test_resume_continues_the_saved_run(ss_run):
     tmp, _, agent = ss_run
+    more = "--total-steps 400 --resume --eval-every 1000 --save-every 1000".split()
     log = run_script(
-        "gw_dreamer.py", tmp, "--env", "simple_shapes", "--checkpoint-dir", str(tmp / "ck"), *TINY,
-        "--total-steps", "400", "--resume", "--eval-every", "1000", "--save-every", "1000",
-    )  # fmt: skip
+        "gw_dreamer.py", tmp, "--env", "simple_shapes", "--checkpoint-dir", str(tmp / "ck"), *TINY, *more
+    )
     assert "resuming" in log and "at env step 250" in log
     ck = torch.load(agent, weights_only=False)
     assert ck["state"]["env_steps"] == 400 and ck["state"]["updates"] == (400 - 100) // 10
     assert_episodes_separated(ck["replay"])  # the episode cut by the save at 250 is closed
 
 
+def test_a_checkpoint_of_the_previous_layout_resumes_to_the_same_run(
+    ss_run, pretrained, tmp_path, monkeypatch
+):
+    """Agents saved with the return scale in the loop state (before it moved into the agent) evaluate and
+    resume; the resumed run is the one the current layout gives, bit for bit."""
+    _, _, agent = ss_run
+    monkeypatch.chdir(tmp_path)  # the runs/ folders
+    now, old = tmp_path / "now.pt", tmp_path / "old.pt"
+    shutil.copy(agent, now)
+    previous_layout(agent, old)
+    steps = torch.load(agent, weights_only=False)["state"]["env_steps"] + 30
+    kw = dict(
+        total_steps=steps, resume=True, eval_episodes=1, eval_every=10**6, video_every=0, learning_starts=100
+    )
+    kw |= dict(train_ratio=10.0, imag_horizon=5, log_every=100)
+    for path in (now, old):
+        G.main(ss_args(pretrained, checkpoint=str(path), exp_name=path.stem, **kw))
+    a, b = (torch.load(p, weights_only=False) for p in (now, old))
+    assert a["state"]["updates"] == b["state"]["updates"] > 0 and "return_scale" not in b["state"]
+    assert all(torch.equal(a["agent"][k], b["agent"][k]) for k in a["agent"])
+
+
 def test_eval_only_with_each_drop(ss_run, pretrained):
     tmp, _, agent = ss_run
+    more = ["--eval-only", "--checkpoint", str(agent), "--drop", "vision", "--eval-episodes", "3"]
     log = run_script(
-        "gw_dreamer.py", tmp, "--env", "simple_shapes", "--checkpoint-dir", str(tmp / "ck"),
-        "--eval-only", "--checkpoint", str(agent), "--drop", "vision", "--eval-episodes", "3",
-    )  # fmt: skip
+        "gw_dreamer.py", tmp, "--env", "simple_shapes", "--checkpoint-dir", str(tmp / "ck"), *more
+    )
     assert "drop=vision: return" in log and "3 episodes" in log
     for drop in ("none", "attr"):
         out = G.main(ss_args(pretrained, eval_only=True, checkpoint=str(agent), drop=drop, eval_episodes=3))
@@ -98,12 +119,9 @@ def test_dropping_a_modality_removes_it_from_z(pretrained):
 
 def test_robodesk_cli_run(pretrained_robodesk):
     tmp = pretrained_robodesk[0]
-    log = run_script(
-        "gw_dreamer.py", tmp, "--env", "robodesk", "--task", "push_green",
-        "--checkpoint-dir", str(tmp / "ck"), "--render-quality", "fast", *TINY, "--eval-episodes", "1",
-        "--total-steps", "800", "--episode-length", "240", "--batch-size", "2", "--eval-every", "4000",
-        timeout=600,
-    )  # fmt: skip
+    env = ["--env", "robodesk", "--task", "push_green", "--checkpoint-dir", str(tmp / "ck")]
+    more = "--eval-episodes 1 --total-steps 800 --episode-length 240 --batch-size 2 --eval-every 4000".split()
+    log = run_script("gw_dreamer.py", tmp, *env, "--render-quality", "fast", *TINY, *more, timeout=600)
     assert "GW-Dreamer on robodesk_push_green" in log and "final_success_count" in log
     # steps are simulator frames (the paper's unit): 800 frames = 200 actions, one update per 10 actions
     assert "800 env steps, counted in simulator frames (4 per agent step)" in log
@@ -149,6 +167,13 @@ def test_agent_checkpoint_reloads_to_identical_outputs(ss_run):
 # --------------------------------------------------------------------------------------------------
 # Pieces
 # --------------------------------------------------------------------------------------------------
+def random_batch(B: int, T1: int) -> dict[str, torch.Tensor]:
+    """A replayed batch of B sequences of T1 entries: random z and actions, no episode boundaries."""
+    zeros = torch.zeros(B, T1)
+    batch = {"z": torch.rand(B, T1, 10), "a": F.one_hot(torch.randint(0, 7, (B, T1)), 7).float()}
+    return batch | {"r": zeros, "d": zeros, "first": zeros.clone(), "last": zeros.clone()}
+
+
 def collect_random(encoder, episodes: int, seed: int = 0) -> G.Replay:
     """A replay buffer of random-policy Simple Shapes episodes, stored as the training loop stores them."""
     from envs.simple_shapes import SimpleShapesVectorEnv
@@ -211,14 +236,7 @@ def test_non_finite_losses_stop_training_with_a_clear_error():
         )
     with pytest.raises(FloatingPointError, match="non-finite world-model loss at env step 7"):
         for _ in range(20):  # some windows miss the NaN entry
-            G.train_update(
-                agent,
-                G.make_optimizers(agent, args),
-                replay,
-                args,
-                {"env_steps": 7, "updates": 0, "return_scale": 0},
-                "cpu",
-            )
+            G.train_update(agent, G.make_optimizers(agent, args), replay, args, env_step=7)
     assert all(torch.isfinite(p).all() for p in agent.parameters())  # the bad update was not applied
 
 
@@ -227,58 +245,27 @@ def test_imagination_shapes_and_stop_gradients():
     agent = G.Agent("simple_shapes", 10, "twohot")
     args = G.Args().resolve()
     h0, z0 = torch.randn(6, 64), torch.rand(6, 10) * 2 - 1
-    hs, acts, rews, conts = G.imagine(agent.wm, agent.actor, agent.reward_dec, h0, z0, 7)
+    dream = G.imagine(agent, h0, z0, 7)
+    hs, acts, rews, conts = dream
     assert hs.shape == (8, 6, 64) and acts.shape == (7, 6, 7) and rews.shape == conts.shape == (7, 6)
     assert torch.equal(hs[0], h0) and not hs.requires_grad and torch.all(acts.sum(-1) == 1)
     assert torch.all((conts >= 0) & (conts <= 1))
-    loss_a, loss_c, _, _ = G.actor_critic_loss(
-        agent.actor, agent.critic, agent.slow_critic, agent.twohot, hs, acts, rews, conts,
-        torch.ones(6), 0.0, 0, args,
-    )  # fmt: skip
+    loss_a, loss_c, _ = G.actor_critic_loss(agent, dream, torch.ones(6), gamma=args.gamma, lam=args.lam)
     (loss_a + loss_c).backward()
     assert all(p.grad is None for p in agent.wm.parameters())  # AC gradients stop at the world model
     assert all(p.grad is not None for p in agent.actor.parameters())
     assert all(p.grad is None for p in agent.slow_critic.parameters())
     agent.zero_grad(set_to_none=True)
-    batch = {
-        "z": torch.rand(3, 5, 10), "a": F.one_hot(torch.randint(0, 7, (3, 5)), 7).float(),
-        "r": -torch.rand(3, 5), "d": torch.zeros(3, 5), "first": torch.zeros(3, 5), "last": torch.zeros(3, 5),
-    }  # fmt: skip
+    batch = random_batch(3, 5) | {"r": -torch.rand(3, 5)}
     G.world_model_loss(agent.wm, agent.reward_dec, batch, args)[0].backward()
     assert all(p.grad is None for p in [*agent.actor.parameters(), *agent.critic.parameters()])
-
-
-def test_actor_critic_input_hz_reads_z_in_dreams_and_when_acting(pretrained, monkeypatch):
-    torch.manual_seed(0)
-    agent = G.Agent("simple_shapes", 10, "twohot", ac_input="hz")
-    h0, z0 = torch.randn(6, 64), torch.rand(6, 10) * 2 - 1
-    feats, acts, _, _ = G.imagine(agent.wm, agent.actor, agent.reward_dec, h0, z0, 3, "hz")
-    assert feats.shape == (4, 6, 74) and torch.equal(feats[0], torch.cat([h0, z0], -1))
-    # later steps: the dreamt h_k beside the world model's own z_k = z_head(h_k)
-    torch.testing.assert_close(feats[1, :, 64:], agent.wm.z_head(feats[1, :, :64]))
-    # when acting the actor reads the real z_t: the CLI run records each input it was given
-    seen = []
-    act = G.Actor.act
-    monkeypatch.setattr(
-        G.Actor, "act", lambda self, x, mode=False: seen.append(x.shape[-1]) or act(self, x, mode)
-    )
-    args = ss_args(pretrained, ac_input="hz", total_steps=120, eval_every=10**6, video_every=0)
-    monkeypatch.chdir(pretrained[0])  # its TensorBoard folder goes under the test's runs/
-    G.main(args)
-    assert seen and set(seen) == {74}
-    path = pretrained[0] / "ck" / "simple_shapes" / "agents" / "gw_dreamer_gw_hz_simple_shapes_s1.pt"
-    with pytest.raises(ValueError, match="trained with --ac-input hz; pass --ac-input hz"):
-        G.main(ss_args(pretrained, eval_only=True, checkpoint=str(path)))
 
 
 def test_world_model_restarts_its_state_at_episode_starts():
     torch.manual_seed(0)
     agent = G.Agent("simple_shapes", 10, "twohot")
     args = G.Args().resolve()
-    batch = {
-        "z": torch.rand(2, 6, 10), "a": F.one_hot(torch.randint(0, 7, (2, 6)), 7).float(),
-        "r": torch.zeros(2, 6), "d": torch.zeros(2, 6), "first": torch.zeros(2, 6), "last": torch.zeros(2, 6),
-    }  # fmt: skip
+    batch = random_batch(2, 6)
     batch["first"][:, 3] = 1
     h = G.world_model_loss(agent.wm, agent.reward_dec, batch, args)[2]
     assert torch.all(h[:, 0] == 0) and torch.all(h[:, 3] == 0) and torch.all(h[:, 2] != 0)
@@ -325,21 +312,27 @@ def test_actor_critic_learns_the_rewarded_action_in_a_toy_dream():
     torch.manual_seed(0)
     args = G.Args().resolve()
     actor, critic = G.Actor(7, 7, 2, discrete=True), G.Critic(7, 2)
-    slow, twohot = G.Critic(7, 2), G.TwoHot()
 
-    class Rewards:  # reward 1 for action 2
+    class Rewards:  # the world model's rewards are 0; the dream's reward is set below
         def value(self, out):
             return torch.zeros(len(out))
 
+    toy = SimpleNamespace(
+        wm=ToyDream(),
+        actor=actor,
+        critic=critic,
+        slow_critic=G.Critic(7, 2),
+        twohot=G.TwoHot(),
+        reward_dec=Rewards(),
+        return_scale=G.ReturnScale(),
+        features=lambda h, z: h,
+    )
     opt = torch.optim.Adam([*actor.parameters(), *critic.parameters()], lr=1e-3)
     h0 = torch.zeros(64, 7)
-    scale = 0.0
-    for i in range(150):
-        hs, acts, _, conts = G.imagine(ToyDream(), actor, Rewards(), h0, torch.zeros(64, 10), 4)
-        rews = acts[..., 2]  # the dream's reward for the action just taken
-        la, lc, scale, _ = G.actor_critic_loss(
-            actor, critic, slow, twohot, hs, acts, rews, conts, torch.ones(64), scale, i, args
-        )
+    for _ in range(150):
+        dream = G.imagine(toy, h0, torch.zeros(64, 10), 4)
+        dream = dream._replace(rewards=dream.actions[..., 2])  # reward 1 for the action 2 just taken
+        la, lc, _ = G.actor_critic_loss(toy, dream, torch.ones(64), gamma=args.gamma, lam=args.lam)
         opt.zero_grad()
         (la + lc).backward()
         opt.step()
@@ -354,13 +347,8 @@ def test_flop_count_of_a_linear_layer():
 
 def test_defaults_follow_the_tables():
     ss, rd = G.Args().resolve(), G.Args(env="robodesk").resolve()
-    assert (ss.batch_size, ss.batch_length, ss.train_ratio, ss.wm_lr, ss.imag_horizon) == (
-        64,
-        32,
-        4.0,
-        1e-3,
-        20,
-    )
+    table = (ss.batch_size, ss.batch_length, ss.train_ratio, ss.wm_lr, ss.imag_horizon)
+    assert table == (64, 32, 4.0, 1e-3, 20)
     assert (rd.batch_size, rd.batch_length, rd.train_ratio, rd.wm_lr, rd.ac_lr) == (32, 128, 2.0, 3e-4, 3e-4)
     assert ss.buffer_size == rd.buffer_size == 100_000 and ss.lam == 0.95 and ss.imag_from == "last"
     sizes = {
@@ -373,27 +361,21 @@ def test_defaults_follow_the_tables():
     assert sum(p.numel() for p in heads.reward_head.parameters()) == 413_440 - 257
 
 
-def test_attribute_control_feeds_the_true_attributes(pretrained, pretrained_robodesk):
-    ck = pretrained[0] / "ck" / "simple_shapes"
-    enc = G.load_encoder("simple_shapes", ck / "vae.pt", ck / "gw.pt")
-    from envs.simple_shapes import sample_dataset
-
-    obs = sample_dataset(3, seed=0)
-    enc.z_source = "attributes"
-    torch.testing.assert_close(enc(obs), torch.as_tensor(obs["attr"][:, :10]).clamp(-1, 1))
-    rd = str(pretrained_robodesk[0] / "ck")
-    with pytest.raises(ValueError, match="Simple Shapes control"):
-        G.main(G.Args(env="robodesk", checkpoint_dir=rd, z_source="attributes"))
-
-
 def test_ctrl_c_saves_the_run_where_it_stopped(pretrained):
     """SIGINT mid-run: the loop finishes the step and its updates, saves (no periodic save is due) and
     exits 130, so nothing since the last periodic save is lost."""
     tmp = pretrained[0]
-    state, step = interrupt_run(
-        "gw_dreamer.py", tmp, tmp / "ck" / "simple_shapes" / "agents" / "interrupted_gw_simple_shapes_s1.pt",
-        "--env", "simple_shapes", "--checkpoint-dir", str(tmp / "ck"), *TINY, "--exp-name", "interrupted",
-    )  # fmt: skip
+    agent = tmp / "ck" / "simple_shapes" / "agents" / "interrupted_gw_simple_shapes_s1.pt"
+    flags = [
+        "--env",
+        "simple_shapes",
+        "--checkpoint-dir",
+        str(tmp / "ck"),
+        *TINY,
+        "--exp-name",
+        "interrupted",
+    ]
+    state, step = interrupt_run("gw_dreamer.py", tmp, agent, *flags)
     assert state["updates"] == (step - 100) // 10  # the updates owed by that step were made
 
 
@@ -462,9 +444,8 @@ def test_update_flops_match_the_closed_form_count_of_the_layers(env, imag_from):
     replay = G.Replay(200, 1, z_dim, n_act, 0)
     for t in range(40):
         replay.add([0], np.full((1, z_dim), 0.1), np.eye(n_act)[[t % n_act]], [-1.0], [0], [t == 0], [0])
-    state = {"env_steps": 0, "updates": 0, "return_scale": 0.0}
     opts = G.make_optimizers(agent, args)
-    _, counted = G.count_flops(lambda: G.train_update(agent, opts, replay, args, state, "cpu"))
+    _, counted = G.count_flops(lambda: G.train_update(agent, opts, replay, args))
     wm, hid = agent.wm, agent.wm.hidden
     gru = [(wm.gru.input_size, 3 * hid), (hid, 3 * hid)]  # a GRU cell: input and hidden products
     heads = linears(wm.z_head) + linears(wm.reward_head) + linears(wm.done_head)

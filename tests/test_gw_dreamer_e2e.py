@@ -7,17 +7,17 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import assert_episodes_separated, interrupt_run, run_script, tiny_agent_args
+from conftest import assert_episodes_separated, interrupt_run, previous_layout, run_script, tiny_agent_args
 
 import gw_dreamer_e2e as E
 import pretrain_vae_gw as P
 
-TINY = [
-    "--learning-starts", "100", "--batch-size", "4", "--batch-length", "8",
-    "--imag-horizon", "5", "--train-ratio", "10", "--gw-batch-size", "64", "--eval-episodes", "2",
-    "--video-every", "0", "--log-every", "100",
-]  # fmt: skip
+TINY = (
+    "--learning-starts 100 --batch-size 4 --batch-length 8 --imag-horizon 5 --train-ratio 10"
+    " --gw-batch-size 64 --eval-episodes 2 --video-every 0 --log-every 100"
+).split()
 AGENT = "gw_dreamer_e2e_gw_simple_shapes_s1.pt"
+SS = ("--env", "simple_shapes", "--checkpoint-dir")  # followed by the folder
 
 
 def ss_args(pretrained, **kw) -> E.Args:
@@ -29,10 +29,8 @@ def ss_run(pretrained):
     """250 steps of end-to-end GW-Dreamer on Simple Shapes through the CLI, saving at 150 and at the end
     (mid-episode)."""
     tmp = pretrained[0]
-    log = run_script(
-        "gw_dreamer_e2e.py", tmp, "--env", "simple_shapes", "--checkpoint-dir", str(tmp / "ck"), *TINY,
-        "--total-steps", "250", "--eval-every", "150", "--save-every", "150",
-    )  # fmt: skip
+    more = "--total-steps 250 --eval-every 150 --save-every 150".split()
+    log = run_script("gw_dreamer_e2e.py", tmp, *SS, str(tmp / "ck"), *TINY, *more)
     return tmp, log, tmp / "ck" / "simple_shapes" / "agents" / AGENT
 
 
@@ -60,8 +58,7 @@ def flops_of_one_update(gw_batch: int) -> int:
     args = E.Args(batch_size=2, batch_length=4, imag_horizon=2, gw_batch_size=gw_batch).resolve()
     agent = E.Agent("simple_shapes", "twohot")
     opts, replay = E.make_optimizers(agent, args), fill_replay_with_noise(60)
-    state = {"env_steps": 0, "gw_updates": 0, "return_scale": 0.0, "updates": 0}
-    return E.count_flops(lambda: E.train_update(agent, opts, replay, args, state, "cpu"))[1]
+    return E.count_flops(lambda: E.train_update(agent, opts, replay, args))[1]
 
 
 def test_gw_flops_are_counted():
@@ -71,10 +68,8 @@ def test_gw_flops_are_counted():
 
 def test_resume_continues_the_saved_run(ss_run):
     tmp, _, agent = ss_run
-    log = run_script(
-        "gw_dreamer_e2e.py", tmp, "--env", "simple_shapes", "--checkpoint-dir", str(tmp / "ck"), *TINY,
-        "--total-steps", "400", "--resume", "--eval-every", "1000", "--save-every", "1000",
-    )  # fmt: skip
+    more = "--total-steps 400 --resume --eval-every 1000 --save-every 1000".split()
+    log = run_script("gw_dreamer_e2e.py", tmp, *SS, str(tmp / "ck"), *TINY, *more)
     assert "resuming" in log and "at env step 250" in log
     ck = torch.load(agent, weights_only=False)
     assert ck["state"]["env_steps"] == 400 and ck["state"]["gw_updates"] == 2 * (400 - 100) // 10
@@ -83,10 +78,8 @@ def test_resume_continues_the_saved_run(ss_run):
 
 def test_eval_only_with_each_drop_and_the_vae_check(ss_run, pretrained, tmp_path):
     tmp, _, agent = ss_run
-    log = run_script(
-        "gw_dreamer_e2e.py", tmp, "--env", "simple_shapes", "--checkpoint-dir", str(tmp / "ck"),
-        "--eval-only", "--checkpoint", str(agent), "--drop", "attr", "--eval-episodes", "3",
-    )  # fmt: skip
+    more = ["--eval-only", "--checkpoint", str(agent), "--drop", "attr", "--eval-episodes", "3"]
+    log = run_script("gw_dreamer_e2e.py", tmp, *SS, str(tmp / "ck"), *more)
     assert "drop=attr: return" in log and "3 episodes" in log
     for drop in ("none", "vision"):
         out = E.main(ss_args(pretrained, eval_only=True, checkpoint=str(agent), drop=drop, eval_episodes=3))
@@ -94,15 +87,23 @@ def test_eval_only_with_each_drop_and_the_vae_check(ss_run, pretrained, tmp_path
     vae = torch.load(pretrained[0] / "ck" / "simple_shapes" / "vae.pt", weights_only=False)
     vae["vae_attr"] = {k: v + 0.01 for k, v in vae["vae_attr"].items()}
     torch.save(vae, tmp_path / "other_vae.pt")
+    other = ss_args(
+        pretrained, eval_only=True, checkpoint=str(agent), vae_checkpoint=str(tmp_path / "other_vae.pt")
+    )
     with pytest.raises(ValueError, match="trained on other VAE weights"):
-        E.main(
-            ss_args(
-                pretrained,
-                eval_only=True,
-                checkpoint=str(agent),
-                vae_checkpoint=str(tmp_path / "other_vae.pt"),
-            )
-        )
+        E.main(other)
+
+
+def test_a_checkpoint_of_the_previous_layout_still_evaluates(ss_run, pretrained, tmp_path):
+    """An agent saved with the return scale in the loop state (the layout before it became part of the
+    agent) evaluates to the same returns as the current layout."""
+    _, _, agent = ss_run
+    previous_layout(agent, tmp_path / "old.pt")
+    runs = [
+        E.main(ss_args(pretrained, eval_only=True, checkpoint=str(p), eval_episodes=2))
+        for p in (agent, tmp_path / "old.pt")
+    ]
+    assert runs[0] == runs[1]
 
 
 def test_dropping_a_modality_removes_it_from_z():
@@ -116,15 +117,13 @@ def test_dropping_a_modality_removes_it_from_z():
 
 def test_robodesk_cli_run(pretrained_robodesk):
     tmp = pretrained_robodesk[0]
-    log = run_script(
-        "gw_dreamer_e2e.py", tmp, "--env", "robodesk", "--task", "push_green",
-        "--checkpoint-dir", str(tmp / "ck"), "--render-quality", "fast", *TINY, "--eval-episodes", "1",
-        "--total-steps", "800", "--episode-length", "240", "--batch-size", "2", "--eval-every", "4000",
-        timeout=600,
-    )  # fmt: skip
+    env = ["--env", "robodesk", "--task", "push_green", "--checkpoint-dir", str(tmp / "ck")]
+    more = "--eval-episodes 1 --total-steps 800 --episode-length 240 --batch-size 2 --eval-every 4000".split()
+    log = run_script("gw_dreamer_e2e.py", tmp, *env, "--render-quality", "fast", *TINY, *more, timeout=600)
     assert "end to end on robodesk_push_green" in log and "final_success_count" in log
-    ck = torch.load(tmp / "ck" / "robodesk" / "agents" / "gw_dreamer_e2e_gw_robodesk_push_green_s1.pt",
-                    weights_only=False)  # fmt: skip
+    ck = torch.load(
+        tmp / "ck" / "robodesk" / "agents" / "gw_dreamer_e2e_gw_robodesk_push_green_s1.pt", weights_only=False
+    )
     assert ck["state"]["updates"] == 17 and ck["state"]["gw_updates"] == 34  # 200 actions of 4 frames
 
 
@@ -171,16 +170,14 @@ def test_joint_training_lowers_the_gw_losses_and_keeps_the_vaes_frozen(pretraine
     gw_before = {k: v.clone() for k, v in agent.gw.state_dict().items()}
     wm_before = {k: v.clone() for k, v in agent.wm.state_dict().items()}
     opts = E.make_optimizers(agent, args)
-    state = {"env_steps": 0, "gw_updates": 0, "return_scale": 0.0, "updates": 0}
-    logs = []
-    for _ in range(60):
-        logs.append(E.train_update(agent, opts, replay, args, state, "cpu"))
-        state["updates"] += 1
+    logs = [
+        {k: float(v) for k, v in E.train_update(agent, opts, replay, args, 2 * i).items()} for i in range(60)
+    ]
     first = np.mean([log["loss_gw"] for log in logs[:5]])
     last = np.mean([log["loss_gw"] for log in logs[-5:]])
     assert last < 0.6 * first, (first, last)
     assert np.mean([log["loss_dcy"] for log in logs[-5:]]) < np.mean([log["loss_dcy"] for log in logs[:5]])
-    assert state["gw_updates"] == 120
+    assert math.isclose(logs[-1]["gw_lr"], E.gw_lr(119, args), rel_tol=1e-6)  # 120 GW updates, numbered
     assert all(not torch.equal(gw_before[k], v) for k, v in agent.gw.state_dict().items() if "weight" in k)
     assert any(not torch.equal(wm_before[k], v) for k, v in agent.wm.state_dict().items())
     assert all(torch.equal(vae_before[k], v) for k, v in vaes.state_dict().items())  # BatchNorm stats too
@@ -193,8 +190,7 @@ def test_world_model_and_actor_critic_send_no_gradient_into_the_gw():
     agent = E.Agent("simple_shapes", "twohot")
     gw_before = {k: v.clone() for k, v in agent.gw.state_dict().items()}
     opts = E.make_optimizers(agent, args)
-    state = {"env_steps": 0, "gw_updates": 0, "return_scale": 0.0, "updates": 0}
-    E.train_update(agent, opts, fill_replay_with_noise(40), args, state, "cpu")
+    E.train_update(agent, opts, fill_replay_with_noise(40), args)
     assert all(torch.equal(gw_before[k], v) for k, v in agent.gw.state_dict().items())
     assert all(p.grad is None for p in agent.gw.parameters())
 
@@ -249,9 +245,7 @@ def test_missing_checkpoints_are_explained(pretrained, pretrained_robodesk, tmp_
 
 def test_ctrl_c_saves_the_run_where_it_stopped(pretrained):
     tmp = pretrained[0]
-    state, step = interrupt_run(
-        "gw_dreamer_e2e.py", tmp,
-        tmp / "ck" / "simple_shapes" / "agents" / "interrupted_e2e_gw_simple_shapes_s1.pt",
-        "--env", "simple_shapes", "--checkpoint-dir", str(tmp / "ck"), *TINY, "--exp-name", "interrupted_e2e",
-    )  # fmt: skip
+    agent = tmp / "ck" / "simple_shapes" / "agents" / "interrupted_e2e_gw_simple_shapes_s1.pt"
+    flags = [*SS, str(tmp / "ck"), *TINY, "--exp-name", "interrupted_e2e"]
+    state, step = interrupt_run("gw_dreamer_e2e.py", tmp, agent, *flags)
     assert state["updates"] == (step - 100) // 10

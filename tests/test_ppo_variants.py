@@ -10,10 +10,7 @@ from conftest import run_script
 
 import ppo_variants as PPO
 
-TINY = [
-    "--num-envs", "2", "--num-steps", "64", "--update-epochs", "2", "--minibatch-size", "64",
-    "--eval-episodes", "2",
-]  # fmt: skip
+TINY = "--num-envs 2 --num-steps 64 --update-epochs 2 --minibatch-size 64 --eval-episodes 2".split()
 VARIANTS = ("raw", "vae", "clip", "gw")
 
 
@@ -25,11 +22,11 @@ def agent_path(folder, env: str, variant: str, task: str = "") -> str:
 def ss_runs(pretrained):
     """256 steps of each variant on Simple Shapes through the CLI."""
     tmp = pretrained[0]
+    ck = ["--checkpoint-dir", str(tmp / "ck")]
     logs = {
-        v: run_script("ppo_variants.py", tmp, "--variant", v, "--checkpoint-dir", str(tmp / "ck"), *TINY,
-                      "--total-steps", "256")
+        v: run_script("ppo_variants.py", tmp, "--variant", v, *ck, *TINY, "--total-steps", "256")
         for v in VARIANTS
-    }  # fmt: skip
+    }
     return tmp, logs
 
 
@@ -45,19 +42,18 @@ def test_simple_shapes_cli_run_of_each_variant(ss_runs, variant):
 
     acc = EventAccumulator(str(tmp / "runs" / f"ppo_{variant}_simple_shapes_s1")).Reload()
     tags = acc.Tags()["scalars"]
-    for tag in ("charts/episodic_return", "charts/normalised_return", "charts/SPS", "charts/train_flops",
-                "losses/value_loss", "losses/policy_loss"):  # fmt: skip
+    wanted = "charts/episodic_return charts/normalised_return charts/SPS charts/train_flops losses/value_loss"
+    for tag in (*wanted.split(), "losses/policy_loss"):
         assert tag in tags, tags
 
 
 @pytest.mark.parametrize("variant", VARIANTS)
 def test_robodesk_cli_run_of_each_variant(pretrained_robodesk, variant):
     tmp = pretrained_robodesk[0]
-    log = run_script(
-        "ppo_variants.py", tmp, "--env", "robodesk", "--variant", variant,
-        "--checkpoint-dir", str(tmp / "ck"), "--render-quality", "fast", "--episode-length", "80", *TINY,
-        "--num-steps", "32", "--total-steps", "256", "--eval-episodes", "1", timeout=600,
-    )  # fmt: skip
+    env = ["--env", "robodesk", "--variant", variant, "--checkpoint-dir", str(tmp / "ck")]
+    more = "--num-steps 32 --total-steps 256 --eval-episodes 1".split()
+    fast = "--render-quality fast --episode-length 80".split()
+    log = run_script("ppo_variants.py", tmp, *env, *fast, *TINY, *more, timeout=600)
     assert f"{variant} PPO on robodesk_push_green" in log and "final_success_count" in log
     ck = torch.load(agent_path(tmp, "robodesk", variant, "_push_green"), weights_only=False)
     # one rollout of 2 x 32 actions, counted in frames (4 per action, the paper's unit)
@@ -68,17 +64,8 @@ def test_a_short_run_beats_the_random_policy(tmp_path, monkeypatch):
     """10,240 steps of multimodal PPO on Simple Shapes: the greedy policy's normalised return (0 = random,
     1 = scripted greedy) is well above 0 (measured 0.51 and 0.50 on seeds 1 and 2)."""
     monkeypatch.chdir(tmp_path)  # TensorBoard writes runs/ in the working directory
-    out = PPO.main(
-        PPO.Args(
-            variant="raw",
-            checkpoint_dir=str(tmp_path / "ck"),
-            num_steps=512,
-            total_steps=10_240,
-            update_epochs=4,
-            minibatch_size=256,
-            eval_episodes=20,
-        )  # fmt: skip
-    )
+    short = dict(num_steps=512, total_steps=10_240, update_epochs=4, minibatch_size=256, eval_episodes=20)
+    out = PPO.main(PPO.Args(variant="raw", checkpoint_dir=str(tmp_path / "ck"), **short))
     assert out["final_normalised_return"] > 0.25, out
 
 
@@ -96,10 +83,8 @@ def test_stop_at_criterion_ends_the_run_after_that_rollout(pretrained, tmp_path,
 
 def test_resume_continues_the_saved_run(ss_runs):
     tmp, _ = ss_runs
-    log = run_script(
-        "ppo_variants.py", tmp, "--variant", "gw", "--checkpoint-dir", str(tmp / "ck"), *TINY,
-        "--total-steps", "512", "--resume",
-    )  # fmt: skip
+    more = ["--checkpoint-dir", str(tmp / "ck"), *TINY, "--total-steps", "512", "--resume"]
+    log = run_script("ppo_variants.py", tmp, "--variant", "gw", *more)
     assert "resuming" in log and "at env step 256" in log
     ck = torch.load(agent_path(tmp, "simple_shapes", "gw"), weights_only=False)
     assert ck["state"]["env_steps"] == 512 and ck["state"]["iteration"] == 4
@@ -107,15 +92,13 @@ def test_resume_continues_the_saved_run(ss_runs):
 
 def test_eval_only_with_each_drop(ss_runs, pretrained):
     tmp, _ = ss_runs
-    log = run_script(
-        "ppo_variants.py", tmp, "--variant", "clip", "--checkpoint-dir", str(tmp / "ck"), "--eval-only",
-        "--drop", "vision", "--eval-episodes", "3",
-    )  # fmt: skip
+    more = ["--checkpoint-dir", str(tmp / "ck"), *"--eval-only --drop vision --eval-episodes 3".split()]
+    log = run_script("ppo_variants.py", tmp, "--variant", "clip", *more)
     assert "drop=vision: return" in log and "3 episodes" in log
     for variant in ("raw", "vae"):
         for drop in ("none", "vision", "attr"):
-            args = PPO.Args(variant=variant, checkpoint_dir=str(tmp / "ck"), eval_only=True, drop=drop,
-                            eval_episodes=2)  # fmt: skip
+            args = PPO.Args(variant=variant, checkpoint_dir=str(tmp / "ck"), eval_only=True, drop=drop)
+            args.eval_episodes = 2
             out = PPO.main(args)
             assert out["drop"] == drop and math.isfinite(out["return_mean"])
 

@@ -174,10 +174,8 @@ def test_vae_and_gw_stages_resume_after_an_interruption(tmp_path, monkeypatch, c
 
     d = sample_dataset(200, seed=0)
     P.write_shard(tmp_path / "data" / "simple_shapes", d["image"], d["attr"], "random")
-    args = P.Args(
-        data_dir=str(tmp_path / "data"), checkpoint_dir=str(tmp_path / "ck"), vae_steps=12,
-        vae_batch_size=8, vae_width=32, save_every=5, log_every=100, eval_size=20,
-    ).resolve()  # fmt: skip
+    tiny = dict(vae_steps=12, vae_batch_size=8, vae_width=32, save_every=5, log_every=100, eval_size=20)
+    args = P.Args(data_dir=str(tmp_path / "data"), checkpoint_dir=str(tmp_path / "ck"), **tiny).resolve()
     real_save = P.atomic_save
 
     def interrupted(obj, path):  # the run dies when it writes its final checkpoint
@@ -209,16 +207,18 @@ def test_vae_and_gw_stages_resume_after_an_interruption(tmp_path, monkeypatch, c
 def test_defaults_follow_the_tables_and_the_cpu_preset_is_small():
     ss, rd = P.Args(env="simple_shapes").resolve(), P.Args(env="robodesk").resolve()
     assert (ss.n_samples, ss.vae_batch_size, ss.vae_steps, ss.vae_width) == (500_000, 2056, 500_000, 1024)
-    assert (ss.vae_lr_v, ss.vae_lr_start_end, ss.gw_lr, ss.gw_lr_start_end, ss.gw_weight_decay) == (
-        5e-3, 5e-3, 5e-3, 5e-4, 1e-5,
-    )  # fmt: skip
-    assert (rd.vae_lr_v, rd.vae_lr_attr, rd.gw_lr, rd.gw_lr_start_end, rd.gw_weight_decay) == (
-        3e-4, 5e-4, 3e-4, 1e-4, 1e-6,
-    )  # fmt: skip
+    ss_rates = (ss.vae_lr_v, ss.vae_lr_start_end, ss.gw_lr, ss.gw_lr_start_end, ss.gw_weight_decay)
+    assert ss_rates == (5e-3, 5e-3, 5e-3, 5e-4, 1e-5)
+    rd_rates = (rd.vae_lr_v, rd.vae_lr_attr, rd.gw_lr, rd.gw_lr_start_end, rd.gw_weight_decay)
+    assert rd_rates == (3e-4, 5e-4, 3e-4, 1e-4, 1e-6)
     cpu = P.Args(env="simple_shapes", cpu_preset=True).resolve()
     assert (cpu.n_samples, cpu.vae_width, cpu.vae_steps, cpu.vae_batch_size, cpu.gw_steps) == (
-        60_000, 64, 5_000, 128, 20_000,
-    )  # fmt: skip
+        60_000,
+        64,
+        5_000,
+        128,
+        20_000,
+    )
     assert (cpu.beta_attr, cpu.attr_updates_per_step) == (0.005, 4)
     # One-cycle schedule: starts and ends at the start/end rate, peaks at the max rate.
     opt = torch.optim.AdamW([torch.zeros(1, requires_grad=True)])

@@ -51,8 +51,10 @@ def test_collection_plan_follows_the_paper_proportions():
 
 
 def test_collector_mixes_sources_and_labels_every_sample(tmp_path):
-    args = ["--env", "robodesk", "--stages", "collect", "--tasks", "push_green", "open_slide",
-            "--render-quality", "fast", "--shard-size", "25"]  # fmt: skip
+    args = (
+        "--env robodesk --stages collect --tasks push_green open_slide --render-quality fast --shard-size 25"
+    )
+    args = args.split()
     log = run_pretrain(tmp_path, *args, "--n-samples", "60")
     assert "20 expert (push_green), 20 expert (open_slide), 20 random" in log
     assert "[collect] 40/60" in log and "(expert, open_slide)" in log  # a progress line per episode

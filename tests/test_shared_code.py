@@ -33,11 +33,15 @@ SHARED = {
     "GlobalWorkspace": (GW, PPO),
     "VisualVAE": (GW, E2E),
     # DreamerV3's pieces
-    **dict.fromkeys("TwoHot symlog symexp lambda_returns action_for_env".split(), DREAMERS),
+    **dict.fromkeys("TwoHot symlog symexp lambda_returns action_for_env ReturnScale Dream".split(), DREAMERS),
+    # The run's bookkeeping: the loop counters, random actions before learning, episodes, Ctrl-C
+    **dict.fromkeys("log_episode interrupted".split(), AGENTS),
+    "random_actions": DREAMERS,
+    "LoopState": (GW, DREAMER),
     # The GW-Dreamer world model and actor-critic (frozen GW and end-to-end variants)
     **dict.fromkeys(
         "Actor Critic RewardDecoder WorldModel SIZES dream_starts schedule world_model_loss actor_critic_loss"
-        " updates_due mlp final_observations".split(),
+        " updates_due mlp final_observations imagine run_name finish".split(),
         (GW, E2E),
     ),
 }

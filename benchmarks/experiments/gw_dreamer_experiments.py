@@ -1,0 +1,123 @@
+"""GW-Dreamer with settings that are not the paper's model: the suspects screened for the reliability of
+the default (docs/experiments.md) and one control. Each flag changes one thing of gw_dreamer.py, which this
+script imports and runs; every other flag, the checkpoints and the logs are gw_dreamer.py's.
+
+    python benchmarks/experiments/gw_dreamer_experiments.py --env simple_shapes --ac-input hz
+    python benchmarks/experiments/gw_dreamer_experiments.py --heads-read-sg-z --seed 8
+    python benchmarks/experiments/gw_dreamer_experiments.py --z-source attributes   # the control
+    python benchmarks/experiments/gw_dreamer_experiments.py --ac-input hz --eval-only --checkpoint PATH
+
+Runs are named like gw_dreamer.py's with one suffix per experiment (``_hz``, ``_sgz``, ``_zinit``,
+``_attrz``), so they never mix with the paper's runs.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+import torch.nn as nn
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+import gw_dreamer as G  # noqa: E402
+
+
+@dataclass
+class Args(G.Args):
+    ac_input: Literal["h", "hz"] = "h"
+    """what the actor and critic read. h: the GRU state h_t (the paper). hz: [h_t, z_t], the real z_t when
+    acting and the world model's z in dreams (DreamerV3's and World Models' controller input)"""
+    heads_read_sg_z: bool = False
+    """the reward and done heads read sg(z_{t+1}), so their losses do not train the z head"""
+    zero_init: bool = False
+    """the reward head's and the critic's output layers start at zero (DreamerV3)"""
+    z_source: Literal["gw", "attributes"] = "gw"
+    """gw: the paper's z_t. attributes (Simple Shapes only): z_t is the true attribute vector (its first
+    10 entries, clipped to [-1, 1]) instead of the GW's, which tests the world model and actor-critic
+    alone"""
+
+
+def suffix(args: Args) -> str:
+    return (
+        ("_attrz" if args.z_source == "attributes" else "")
+        + ("_hz" if args.ac_input == "hz" else "")
+        + ("_sgz" if args.heads_read_sg_z else "")
+        + ("_zinit" if args.zero_init else "")
+    )
+
+
+def experiment_agent(args: Args) -> type[G.Agent]:
+    """gw_dreamer.Agent with this run's experiments built in."""
+
+    class SgZWorldModel(G.WorldModel):
+        def heads(self, h_next):
+            z_next = self.z_head(h_next)
+            feat = torch.cat([h_next, z_next.detach()], -1)
+            return z_next, self.reward_head(feat), self.done_head(feat).squeeze(-1)
+
+    class ExperimentAgent(G.Agent):
+        def __init__(self, env, z_dim, reward_loss, return_norm_decay=0.99):
+            super().__init__(env, z_dim, reward_loss, return_norm_decay)
+            if args.heads_read_sg_z:
+                self.wm.__class__ = SgZWorldModel  # same parameters, other forward
+            if args.zero_init:  # DreamerV3: reward and value predictions start at 0
+                for last in (self.wm.reward_head[-1], self.critic.net[-1]):
+                    nn.init.zeros_(last.weight)
+                    nn.init.zeros_(last.bias)
+                self.slow_critic.load_state_dict(self.critic.state_dict())
+
+        @staticmethod
+        def feature_size(env, z_dim):
+            return G.SIZES[env]["gru_hidden"] + (z_dim if args.ac_input == "hz" else 0)
+
+        def features(self, h, z):
+            return torch.cat([h, z], -1) if args.ac_input == "hz" else h
+
+    return ExperimentAgent
+
+
+class AttributeEncoder(G.FrozenEncoder):
+    """The control: z_t is the true attribute vector, not the GW's (the images are not read)."""
+
+    @torch.no_grad()
+    def forward(self, obs: dict[str, np.ndarray], alpha_v: float = 0.5, alpha_attr: float = 0.5):
+        attr = torch.as_tensor(
+            obs["attr"][:, : self.z_dim], device=self.attr_mean.device, dtype=torch.float32
+        )
+        return attr.clamp(-1, 1)
+
+
+def main(args: Args) -> dict:
+    if args.z_source == "attributes" and args.env != "simple_shapes":
+        raise G.UsageError(
+            "--z-source attributes is a Simple Shapes control (RoboDesk attributes are unbounded)"
+        )
+    paper_run_name, paper_load_frozen = G.run_name, G.load_frozen
+
+    def load_frozen(a, dev):
+        encoder, paths = paper_load_frozen(a, dev)
+        if a.z_source == "attributes":
+            encoder.__class__ = AttributeEncoder
+        return encoder, paths
+
+    patches = {
+        "Agent": experiment_agent(args),
+        "load_frozen": load_frozen,
+        "run_name": lambda a, model: paper_run_name(a, model + suffix(a)),
+    }
+    saved = {name: getattr(G, name) for name in patches}
+    for name, value in patches.items():
+        setattr(G, name, value)
+    try:
+        return G.main(args)
+    finally:
+        for name, value in saved.items():
+            setattr(G, name, value)
+
+
+if __name__ == "__main__":
+    G.cli(main, Args)

@@ -1,0 +1,92 @@
+"""benchmarks/experiments/gw_dreamer_experiments.py: each experiment changes the one thing it names, its
+runs stay apart from the paper's, and gw_dreamer.py refuses (with the command to use) an agent trained
+with one."""
+
+import sys
+
+import pytest
+import torch
+from conftest import ROOT, run_script, tiny_agent_args
+
+import gw_dreamer as G
+
+sys.path.insert(0, str(ROOT / "benchmarks" / "experiments"))
+import gw_dreamer_experiments as X  # noqa: E402
+
+AGENTS = ("ck", "simple_shapes", "agents")
+
+
+def x_args(pretrained, **kw) -> X.Args:
+    return tiny_agent_args(X, pretrained, **kw)
+
+
+def test_actor_critic_input_hz_reads_z_in_dreams_and_when_acting(pretrained, monkeypatch):
+    torch.manual_seed(0)
+    agent = X.experiment_agent(X.Args(ac_input="hz"))("simple_shapes", 10, "twohot")
+    h0, z0 = torch.randn(6, 64), torch.rand(6, 10) * 2 - 1
+    feats = G.imagine(agent, h0, z0, 3).feats
+    assert feats.shape == (4, 6, 74) and torch.equal(feats[0], torch.cat([h0, z0], -1))
+    # later steps: the dreamt h_k beside the world model's own z_k = z_head(h_k)
+    torch.testing.assert_close(feats[1, :, 64:], agent.wm.z_head(feats[1, :, :64]))
+    # when acting the actor reads the real z_t: the run records each input it was given
+    seen, act = [], G.Actor.act
+    monkeypatch.setattr(
+        G.Actor, "act", lambda self, x, mode=False: seen.append(x.shape[-1]) or act(self, x, mode)
+    )
+    monkeypatch.chdir(pretrained[0])  # its TensorBoard folder goes under the test's runs/
+    X.main(x_args(pretrained, ac_input="hz", total_steps=120, eval_every=10**6, video_every=0))
+    assert seen and set(seen) == {74}
+    path = pretrained[0].joinpath(*AGENTS, "gw_dreamer_gw_hz_simple_shapes_s1.pt")
+    # the patches are undone after the run: gw_dreamer.py builds the paper's agent and run names again
+    assert G.Agent.__qualname__ == "Agent" and G.run_name(G.Args(), "gw") == "gw_dreamer_gw_simple_shapes_s1"
+    with pytest.raises(
+        G.UsageError, match="trained with --ac-input hz, an experiment: use .*gw_dreamer_experiments"
+    ):
+        G.main(tiny_agent_args(G, pretrained, eval_only=True, checkpoint=str(path)))
+    out = X.main(x_args(pretrained, ac_input="hz", eval_only=True, checkpoint=str(path), eval_episodes=2))
+    assert out["drop"] == "none"
+
+
+def test_heads_read_sg_z_keeps_the_reward_loss_out_of_the_z_head():
+    torch.manual_seed(0)
+    plain = G.Agent("simple_shapes", 10, "twohot")
+    sgz = X.experiment_agent(X.Args(heads_read_sg_z=True))("simple_shapes", 10, "twohot")
+    sgz.load_state_dict(plain.state_dict())
+    h = torch.randn(5, 64)
+    for agent, reaches in ((plain, True), (sgz, False)):
+        z_next, r_out, _ = agent.wm.heads(h)
+        r_out.sum().backward()
+        assert (agent.wm.z_head[0].weight.grad is not None) == reaches
+        assert agent.wm.reward_head[0].weight.grad is not None
+    torch.testing.assert_close(sgz.wm.heads(h)[1], plain.wm.heads(h)[1])  # same forward values
+
+
+def test_zero_init_starts_reward_and_value_at_zero():
+    agent = X.experiment_agent(X.Args(zero_init=True))("simple_shapes", 10, "twohot")
+    h = torch.randn(4, 64)
+    zero = torch.zeros(4)  # uniform logits over the symmetric bins: the mean is 0 up to rounding
+    torch.testing.assert_close(agent.twohot.mean(agent.critic(h)), zero, atol=1e-5, rtol=0)
+    torch.testing.assert_close(agent.twohot.mean(agent.slow_critic(h)), zero, atol=1e-5, rtol=0)
+    value = agent.reward_dec.value(agent.wm.reward_head(torch.cat([h, torch.rand(4, 10)], -1)))
+    torch.testing.assert_close(value, zero, atol=1e-5, rtol=0)
+    plain = G.Agent("simple_shapes", 10, "twohot")
+    assert plain.twohot.mean(plain.critic(h)).abs().max() > 1e-3  # which the paper's initialisation is not
+
+
+def test_attribute_control_feeds_the_true_attributes(pretrained, pretrained_robodesk, tmp_path):
+    ck = pretrained[0] / "ck" / "simple_shapes"
+    enc = G.load_encoder("simple_shapes", ck / "vae.pt", ck / "gw.pt")
+    enc.__class__ = X.AttributeEncoder
+    from envs.simple_shapes import sample_dataset
+
+    obs = sample_dataset(3, seed=0)
+    torch.testing.assert_close(enc(obs), torch.as_tensor(obs["attr"][:, :10]).clamp(-1, 1))
+    rd = str(pretrained_robodesk[0] / "ck")
+    with pytest.raises(G.UsageError, match="Simple Shapes control"):
+        X.main(X.Args(env="robodesk", checkpoint_dir=rd, z_source="attributes"))
+    # through the CLI: the run is named apart from the paper's and logs its flag
+    script = "benchmarks/experiments/gw_dreamer_experiments.py"
+    flags = "--z-source attributes --learning-starts 20 --batch-size 2 --batch-length 4 --total-steps 40"
+    flags += " --eval-episodes 1 --video-every 0 --eval-every 1000 --train-ratio 10 --imag-horizon 3"
+    log = run_script(script, tmp_path, "--checkpoint-dir", str(pretrained[0] / "ck"), *flags.split())
+    assert "done:" in log and (tmp_path / "runs" / "gw_dreamer_gw_attrz_simple_shapes_s1").is_dir()
