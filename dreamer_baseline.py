@@ -73,6 +73,10 @@ class Args:
     """torch device"""
     torch_threads: int = 0
     """torch CPU threads (0: torch's default)"""
+    compile: bool = False
+    """run the update's losses through torch.compile (on a GPU with CUDA graphs, mode "reduce-overhead");
+    compiling takes minutes at start, and a non-finite loss is then caught at the next log line or save
+    rather than at once (docs/dreamer_baseline.md)"""
 
     # network sizes beyond the table's (tests and quick CPU runs; None: the size's value)
     deter: int | None = None
@@ -583,15 +587,18 @@ class ReturnScale(nn.Module):
     def __init__(self, decay: float = 0.99):
         super().__init__()
         self.decay = decay
-        self.register_buffer("ema", torch.zeros((), dtype=torch.float64))
-        self.register_buffer("count", torch.zeros((), dtype=torch.float64))
+        # One element rather than a 0-d tensor: torch.compile (2.13, CPU) drops writes to 0-d float64 buffers.
+        self.register_buffer("ema", torch.zeros(1, dtype=torch.float64))
+        self.register_buffer("count", torch.zeros(1, dtype=torch.float64))
 
     def update(self, returns: torch.Tensor) -> torch.Tensor:
-        """Fold in one batch of returns; the debiased scale S (a 0-d tensor, no host sync)."""
+        """Fold in one batch of returns; the debiased scale S (a tensor, no host sync)."""
         lo, hi = torch.quantile(returns.detach(), torch.tensor([0.05, 0.95], device=returns.device))
-        self.ema.copy_(self.decay * self.ema + (1 - self.decay) * (hi - lo).double())
-        self.count.add_(1)
-        return self.ema / (1 - self.decay**self.count)
+        ema = self.decay * self.ema + (1 - self.decay) * (hi - lo).double()
+        count = self.count + 1
+        self.ema.copy_(ema)
+        self.count.copy_(count)
+        return ema / (1 - self.decay**count)
 
 
 class Agent(nn.Module):
@@ -1177,7 +1184,8 @@ def observer_fingerprint(observer: Observer) -> float:
 # are); every other setting defines the run, and --resume refuses a change to any of them.
 MAY_CHANGE = set(
     "total_steps stop_at_criterion eval_every eval_episodes log_every save_every video_every device"
-    " torch_threads resume overwrite checkpoint checkpoint_dir vae_checkpoint exp_name eval_only drop".split()
+    " torch_threads resume overwrite checkpoint checkpoint_dir vae_checkpoint exp_name eval_only drop"
+    " compile".split()
 )
 # Settings an evaluation must share with the agent it loads (they shape its networks or inputs).
 EVAL_KEYS = ("task", "obs", "deter", "hidden", "units", "cnn_depth", "layers", "classes")
@@ -1214,8 +1222,10 @@ def load_agent_checkpoint(path: Path, args: Args, fingerprint: float) -> dict:
         )
     if "return_scale.ema" not in ckpt["agent"]:  # the return scale was a float of the loop state
         state = ckpt["state"]
-        ckpt["agent"]["return_scale.ema"] = torch.tensor(state.pop("return_scale", 0.0), dtype=torch.float64)
-        ckpt["agent"]["return_scale.count"] = torch.tensor(float(state["updates"]), dtype=torch.float64)
+        ckpt["agent"]["return_scale.ema"] = torch.tensor(
+            [state.pop("return_scale", 0.0)], dtype=torch.float64
+        )
+        ckpt["agent"]["return_scale.count"] = torch.tensor([float(state["updates"])], dtype=torch.float64)
     return ckpt
 
 
@@ -1264,16 +1274,47 @@ def updates_due(env_steps: int, args: Args) -> int:
     return int(agent_steps * args.train_ratio / (args.batch_size * args.batch_length))
 
 
-def train_update(agent: Agent, opts: dict, replay: Replay, args: Args, env_step: int = 0) -> dict:
+def dream_loss(agent: Agent, deter0: torch.Tensor, stoch0: torch.Tensor, start_w, dynamics: bool, args: Args):
+    """The actor-critic's part of an update: dreams from the replayed posterior states, then their loss."""
+    dream = imagine(agent, deter0, stoch0, args.imag_horizon, grad=dynamics)
+    return actor_critic_loss(
+        agent,
+        dream,
+        start_w,
+        dynamics=dynamics,
+        gamma=args.gamma,
+        lam=args.lam,
+        entropy_coef=args.entropy_coef,
+    )
+
+
+EAGER = {"wm": world_model_loss, "ac": dream_loss}  # the two loss computations of an update
+
+
+def compiled_losses(device) -> dict:
+    """--compile: both loss computations through torch.compile, with CUDA graphs on a GPU. The optimizer
+    steps stay eager; nothing in the compiled parts reads a value back to the host."""
+    mode = "reduce-overhead" if str(device).startswith("cuda") else None
+    # The actor's and the critic's losses come out of one compiled graph whose backward runs once per
+    # loss (each reaches only its own network), so that graph keeps its buffers between the two calls.
+    torch._functorch.config.donated_buffer = False
+    return {k: torch.compile(fn, mode=mode) for k, fn in EAGER.items()}
+
+
+def train_update(
+    agent: Agent, opts: dict, replay: Replay, args: Args, env_step: int = 0, losses: dict = EAGER
+) -> dict:
     """One training step: the world model on replayed sequences, then the actor-critic on rollouts
-    dreamt from every replayed posterior state. Returns detached tensors, read once per log interval."""
-    dev = agent.twohot.bins.device
+    dreamt from every replayed posterior state. Returns detached tensors, read once per log interval.
+    Eager losses are checked at once (the bad update is not applied); compiled ones at the next log line
+    or save (no host sync in the update)."""
+    dev, check = agent.twohot.bins.device, losses is EAGER
     batch = {
         k: torch.as_tensor(v, device=dev)
         for k, v in replay.sample(args.batch_size, args.batch_length).items()
     }
-    loss_wm, terms, (deter, stoch) = world_model_loss(agent, batch, args)
-    if not torch.isfinite(loss_wm):
+    loss_wm, terms, (deter, stoch) = losses["wm"](agent, batch, args)
+    if check and not torch.isfinite(loss_wm):
         raise FloatingPointError(f"non-finite world-model loss at env step {env_step:,}")
     opts["wm"].zero_grad(set_to_none=True)
     loss_wm.backward()
@@ -1283,22 +1324,14 @@ def train_update(agent: Agent, opts: dict, replay: Replay, args: Args, env_step:
     dynamics = args.actor_grad == "dynamics" or (args.actor_grad == "auto" and not agent.discrete)
     deter0, stoch0 = deter.detach().flatten(0, 1), stoch.detach().flatten(0, 1)
     start_w = (1 - batch["terminal"]).flatten()  # no dream from an episode's final observation
-    dream = imagine(agent, deter0, stoch0, args.imag_horizon, grad=dynamics)
-    loss_actor, loss_critic, stats = actor_critic_loss(
-        agent,
-        dream,
-        start_w,
-        dynamics=dynamics,
-        gamma=args.gamma,
-        lam=args.lam,
-        entropy_coef=args.entropy_coef,
-    )
-    if not (torch.isfinite(loss_actor) and torch.isfinite(loss_critic)):
+    loss_actor, loss_critic, stats = losses["ac"](agent, deter0, stoch0, start_w, dynamics, args)
+    if check and not (torch.isfinite(loss_actor) and torch.isfinite(loss_critic)):
         raise FloatingPointError(f"non-finite actor-critic loss at env step {env_step:,}")
     opts["actor"].zero_grad(set_to_none=True)
     opts["critic"].zero_grad(set_to_none=True)
-    # Each loss reaches only its own network (the world model is trained by L_WM alone).
-    loss_actor.backward(inputs=list(agent.actor.parameters()))
+    # Each loss reaches only its own network (the world model is trained by L_WM alone); the first call
+    # keeps the graph's buffers for the second (one graph when compiled).
+    loss_actor.backward(inputs=list(agent.actor.parameters()), retain_graph=True)
     loss_critic.backward(inputs=list(agent.critic.parameters()))
     nn.utils.clip_grad_norm_(agent.actor.parameters(), 100.0)
     nn.utils.clip_grad_norm_(agent.critic.parameters(), 100.0)
@@ -1308,7 +1341,7 @@ def train_update(agent: Agent, opts: dict, replay: Replay, args: Args, env_step:
         for p_slow, p in zip(agent.slow_critic.parameters(), agent.critic.parameters(), strict=True):
             p_slow.lerp_(p, 1 - args.slow_critic_decay)
     out = {"loss_wm": loss_wm, **terms, "loss_actor": loss_actor, "loss_critic": loss_critic, **stats}
-    return {k: v.detach() for k, v in out.items()}
+    return {k: v.detach().clone() for k, v in out.items()}  # a copy: CUDA graphs reuse their outputs
 
 
 def make_optimizers(agent: Agent, args: Args) -> dict:
@@ -1422,8 +1455,13 @@ def start_run(args: Args, observer: Observer, agent: Agent, paths: dict, agent_p
 
 def save(run: Run) -> None:
     """The resumable agent checkpoint (networks, optimizers, replay, counters, random states) and the
-    exported expert policy beside it."""
+    exported expert policy beside it (never weights a non-finite --compile update has reached)."""
     a = run.args
+    if a.compile and not all(torch.isfinite(p).all() for p in run.agent.parameters()):
+        step = run.state.env_steps
+        raise FloatingPointError(
+            f"non-finite weights at env step {step:,}; the last good checkpoint is {run.agent_path}"
+        )
     atomic_save(
         {
             "kind": "dreamer",
@@ -1472,6 +1510,10 @@ def bookkeeping(run: Run, logs: dict) -> None:
     step, repeat = s.env_steps, ACTION_REPEAT[a.env]
     if step % a.log_every < a.num_envs * repeat and logs:
         logs = {k: float(v) for k, v in logs.items()}  # the one host sync per log interval
+        if not all(map(math.isfinite, logs.values())):  # --compile checks here, not in the update
+            raise FloatingPointError(
+                f"non-finite losses by env step {step:,}; the last good checkpoint is {run.agent_path}"
+            )
         sps = (step - run.steps0) / max(time.time() - run.t0, 1e-9)
         for k, v in logs.items():
             w.add_scalar(f"losses/{k}", v, step)
@@ -1595,6 +1637,7 @@ def main(args: Args) -> dict:
         return evaluate_checkpoint(agent, observer, args, agent_path)
     run = start_run(args, observer, agent, paths, agent_path)
     state, replay, ne, n_actions = run.state, run.replay, args.num_envs, agent.n_actions
+    losses = compiled_losses(dev) if args.compile else EAGER
 
     envs_ = make_envs(args, ne)
     obs, _ = envs_.reset(seed=args.seed + state.env_steps)
@@ -1653,7 +1696,7 @@ def main(args: Args) -> dict:
                         lambda: train_update(agent, run.opts, replay, args, state.env_steps)
                     )
                 else:
-                    logs = train_update(agent, run.opts, replay, args, state.env_steps)
+                    logs = train_update(agent, run.opts, replay, args, state.env_steps, losses)
             except FloatingPointError as err:
                 raise FloatingPointError(f"{err}; the last good checkpoint is {run.agent_path}") from err
             state.updates += 1

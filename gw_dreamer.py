@@ -61,6 +61,10 @@ class Args:
     """torch device"""
     torch_threads: int = 0
     """torch CPU threads (0: torch's default)"""
+    compile: bool = False
+    """run the update's losses through torch.compile (on a GPU with CUDA graphs, mode "reduce-overhead");
+    compiling takes minutes at start, and a non-finite loss is then caught at the next log line or save
+    rather than at once (docs/gw_dreamer.md, "Speed and compute")"""
 
     # frozen representations (pretrain_vae_gw.py)
     checkpoint_dir: str = "checkpoints"
@@ -99,8 +103,11 @@ class Args:
     """world-model Adam learning rate (default 1e-3 Simple Shapes, 3e-4 RoboDesk)"""
     ac_lr: float = 3e-4
     """actor and critic Adam learning rate"""
-    wm_z_coef: float = 1.0
-    """weight of the z_{t+1} MSE in L_WM"""
+    wm_z_coef: float = 10.0
+    """weight of the z_{t+1} MSE in L_WM. The paper gives L_WM as a weighted sum without its weights; at 1
+    the reward term is 20-50x the z term and the world model's one-step z error stays as large as one
+    action's effect on z; 10 reached the Simple Shapes criterion in 10 of 10 seeds against 8 of 10 at 1
+    (docs/paper_readings.md, docs/experiments.md)"""
     wm_reward_coef: float = 1.0
     """weight of the reward term in L_WM"""
     wm_done_coef: float = 1.0
@@ -471,15 +478,18 @@ class ReturnScale(nn.Module):
     def __init__(self, decay: float = 0.99):
         super().__init__()
         self.decay = decay
-        self.register_buffer("ema", torch.zeros((), dtype=torch.float64))
-        self.register_buffer("count", torch.zeros((), dtype=torch.float64))
+        # One element rather than a 0-d tensor: torch.compile (2.13, CPU) drops writes to 0-d float64 buffers.
+        self.register_buffer("ema", torch.zeros(1, dtype=torch.float64))
+        self.register_buffer("count", torch.zeros(1, dtype=torch.float64))
 
     def update(self, returns: torch.Tensor) -> torch.Tensor:
-        """Fold in one batch of returns; the debiased scale S (a 0-d tensor, no host sync)."""
+        """Fold in one batch of returns; the debiased scale S (a tensor, no host sync)."""
         lo, hi = torch.quantile(returns.detach(), torch.tensor([0.05, 0.95], device=returns.device))
-        self.ema.copy_(self.decay * self.ema + (1 - self.decay) * (hi - lo).double())
-        self.count.add_(1)
-        return self.ema / (1 - self.decay**self.count)
+        ema = self.decay * self.ema + (1 - self.decay) * (hi - lo).double()
+        count = self.count + 1
+        self.ema.copy_(ema)
+        self.count.copy_(count)
+        return ema / (1 - self.decay**count)
 
 
 class Agent(nn.Module):
@@ -685,28 +695,47 @@ def actor_critic_loss(agent, dream: Dream, start_w, *, gamma=1 - 1 / 333, lam=0.
     return loss_actor, loss_critic, stats
 
 
-def train_update(agent: Agent, opts: dict, replay: Replay, args: Args, env_step: int = 0) -> dict:
+def dream_loss(agent: Agent, h0: torch.Tensor, z0: torch.Tensor, start_w: torch.Tensor, args: Args):
+    """The actor-critic's part of an update: dreams from (h0, z0), then their loss (Algorithm 1, lines
+    12-14)."""
+    dream = imagine(agent, h0, z0, args.imag_horizon)
+    return actor_critic_loss(
+        agent, dream, start_w, gamma=args.gamma, lam=args.lam, entropy_coef=args.entropy_coef
+    )
+
+
+EAGER = {"wm": world_model_loss, "ac": dream_loss}  # the two loss computations of an update
+
+
+def compiled_losses(device) -> dict:
+    """--compile: both loss computations through torch.compile, with CUDA graphs on a GPU. The optimizer
+    steps stay eager; nothing in the compiled parts reads a value back to the host."""
+    mode = "reduce-overhead" if str(device).startswith("cuda") else None
+    return {k: torch.compile(fn, mode=mode) for k, fn in EAGER.items()}
+
+
+def train_update(
+    agent: Agent, opts: dict, replay: Replay, args: Args, env_step: int = 0, losses: dict = EAGER
+) -> dict:
     """One global training step: the world model on replayed sequences, then the actor-critic on
     rollouts dreamt from the replayed states (Algorithm 1, lines 6-14). Returns detached tensors, read
-    once per log interval."""
-    dev = agent.twohot.bins.device
+    once per log interval. Eager losses are checked at once (the bad update is not applied); compiled
+    ones at the next log line or save (no host sync in the update)."""
+    dev, check = agent.twohot.bins.device, losses is EAGER
     batch = {
         k: torch.as_tensor(v, device=dev)
         for k, v in replay.sample(args.batch_size, args.batch_length).items()
     }
-    loss_wm, terms, h_entry, _ = world_model_loss(agent.wm, agent.reward_dec, batch, args)
-    if not torch.isfinite(loss_wm):
+    loss_wm, terms, h_entry, _ = losses["wm"](agent.wm, agent.reward_dec, batch, args)
+    if check and not torch.isfinite(loss_wm):
         raise FloatingPointError(f"non-finite world-model loss at env step {env_step:,}")
     opts["wm"].zero_grad(set_to_none=True)
     loss_wm.backward()
     nn.utils.clip_grad_norm_(agent.wm.parameters(), 1000.0)
     opts["wm"].step()
     h0, z0, start_w = dream_starts(h_entry.detach(), batch, args.imag_from)
-    dream = imagine(agent, h0, z0, args.imag_horizon)
-    loss_actor, loss_critic, stats = actor_critic_loss(
-        agent, dream, start_w, gamma=args.gamma, lam=args.lam, entropy_coef=args.entropy_coef
-    )
-    if not (torch.isfinite(loss_actor) and torch.isfinite(loss_critic)):
+    loss_actor, loss_critic, stats = losses["ac"](agent, h0, z0, start_w, args)
+    if check and not (torch.isfinite(loss_actor) and torch.isfinite(loss_critic)):
         raise FloatingPointError(f"non-finite actor-critic loss at env step {env_step:,}")
     opts["actor"].zero_grad(set_to_none=True)
     opts["critic"].zero_grad(set_to_none=True)
@@ -719,7 +748,7 @@ def train_update(agent: Agent, opts: dict, replay: Replay, args: Args, env_step:
         for p_slow, p in zip(agent.slow_critic.parameters(), agent.critic.parameters(), strict=True):
             p_slow.lerp_(p, 1 - args.slow_critic_decay)
     out = {"loss_wm": loss_wm, **terms, "loss_actor": loss_actor, "loss_critic": loss_critic, **stats}
-    return {k: v.detach() for k, v in out.items()}
+    return {k: v.detach().clone() for k, v in out.items()}  # a copy: CUDA graphs reuse their outputs
 
 
 def make_optimizers(agent: Agent, args: Args) -> dict:
@@ -1063,7 +1092,7 @@ def gw_fingerprint(encoder: FrozenEncoder) -> float:
 MAY_CHANGE = set(
     "total_steps stop_at_criterion eval_every eval_episodes log_every save_every video_every device"
     " torch_threads resume overwrite checkpoint checkpoint_dir gw_checkpoint vae_checkpoint exp_name"
-    " eval_only drop".split()
+    " eval_only drop compile".split()
 )
 # Settings an evaluation must share with the agent it loads (they shape its networks or inputs).
 EVAL_KEYS = ("task", "reward_loss")
@@ -1108,8 +1137,10 @@ def load_agent_checkpoint(path: Path, args: Args, fingerprint: float) -> dict:
         )
     if "return_scale.ema" not in ckpt["agent"]:  # the return scale was a float of the loop state
         state = ckpt["state"]
-        ckpt["agent"]["return_scale.ema"] = torch.tensor(state.pop("return_scale", 0.0), dtype=torch.float64)
-        ckpt["agent"]["return_scale.count"] = torch.tensor(float(state["updates"]), dtype=torch.float64)
+        ckpt["agent"]["return_scale.ema"] = torch.tensor(
+            [state.pop("return_scale", 0.0)], dtype=torch.float64
+        )
+        ckpt["agent"]["return_scale.count"] = torch.tensor([float(state["updates"])], dtype=torch.float64)
     return ckpt
 
 
@@ -1262,8 +1293,14 @@ def start_run(args: Args, encoder: FrozenEncoder, agent: Agent, paths: dict, age
 
 
 def save(run: Run) -> None:
-    """The resumable agent checkpoint: networks, optimizers, replay, counters and random states."""
+    """The resumable agent checkpoint: networks, optimizers, replay, counters and random states (never
+    weights a non-finite --compile update has reached)."""
     a = run.args
+    if a.compile and not all(torch.isfinite(p).all() for p in run.agent.parameters()):
+        step = run.state.env_steps
+        raise FloatingPointError(
+            f"non-finite weights at env step {step:,}; the last good checkpoint is {run.agent_path}"
+        )
     atomic_save(
         {
             "kind": "gw_dreamer",
@@ -1313,6 +1350,10 @@ def bookkeeping(run: Run, logs: dict) -> None:
     step, repeat = s.env_steps, ACTION_REPEAT[a.env]
     if step % a.log_every < a.num_envs * repeat and logs:
         logs = {k: float(v) for k, v in logs.items()}  # the one host sync per log interval
+        if not all(map(math.isfinite, logs.values())):  # --compile checks here, not in the update
+            raise FloatingPointError(
+                f"non-finite losses by env step {step:,}; the last good checkpoint is {run.agent_path}"
+            )
         sps = (step - run.steps0) / max(time.time() - run.t0, 1e-9)
         for k, v in logs.items():
             w.add_scalar(f"losses/{k}", v, step)
@@ -1437,6 +1478,7 @@ def main(args: Args) -> dict:
     # Initialize the world model, the actor-critic and the replay buffer (or continue a saved run).
     run = start_run(args, encoder, agent, paths, agent_path)
     state, replay, n_envs, repeat = run.state, run.replay, args.num_envs, ACTION_REPEAT[args.env]
+    losses = compiled_losses(dev) if args.compile else EAGER
     action_dim = SIZES[args.env]["actions"]
 
     envs_ = make_envs(args, n_envs)
@@ -1485,7 +1527,7 @@ def main(args: Args) -> dict:
                         lambda: train_update(agent, run.opts, replay, args, state.env_steps)
                     )
                 else:
-                    logs = train_update(agent, run.opts, replay, args, state.env_steps)
+                    logs = train_update(agent, run.opts, replay, args, state.env_steps, losses)
             except FloatingPointError as err:
                 raise FloatingPointError(f"{err}; the last good checkpoint is {run.agent_path}") from err
             state.updates += 1

@@ -14,7 +14,10 @@ Stages run in the order collect -> vae -> gw; each can run alone (``--stages vae
 from __future__ import annotations
 
 import ctypes
+import inspect
 import json
+import math
+import multiprocessing as mp
 import os
 import signal
 import sys
@@ -82,6 +85,9 @@ class Args:
     beside them), one per task: each collects its own task's expert share instead of the scripted expert"""
     shard_size: int = 50_000
     """samples per compressed shard"""
+    workers: int = 1
+    """collect stage: processes side by side, each with its own simulator and renderer (RoboDesk: one
+    episode at a time; Simple Shapes: one shard at a time); the data are the same for any number"""
     render_quality: Literal["faithful", "fast"] = "faithful"
     """RoboDesk image quality of the collected data (fast: CPU experiments only, docs/environments.md)"""
 
@@ -564,20 +570,67 @@ def collect(args: Args, stop: StopRequest) -> None:
         return
     progress = Progress("collect", args.n_samples, have)
     rng_seed = args.seed * 1_000_003 + have  # appending draws fresh states
-    if args.env == "simple_shapes":
-        from envs.simple_shapes import sample_dataset
-
-        while need > 0:
-            n = min(args.shard_size, need)
-            d = sample_dataset(n, seed=rng_seed, wide_share=args.wide_share)
-            write_shard(folder, d["image"], d["attr"], np.where(d["wide"], "random_wide", "random"), "")
-            rng_seed, need, have = rng_seed + 1, need - n, have + n
-            progress.show(have)
-            if stop.requested and need > 0:
-                interrupted(f"collect stage with {have:,} samples in {folder}")
+    if args.env == "simple_shapes":  # one job per shard, seeded rng_seed, rng_seed + 1, ...
+        sizes = [min(args.shard_size, need - k) for k in range(0, need, args.shard_size)]
+        jobs = [(n, rng_seed + i, args.wide_share) for i, n in enumerate(sizes)]
+        with Workers(args.workers, shapes_shard, {}) as results:
+            for d in results(jobs):
+                write_shard(folder, d["image"], d["attr"], np.where(d["wide"], "random_wide", "random"), "")
+                need, have = need - len(d["attr"]), have + len(d["attr"])
+                progress.show(have)
+                if stop.requested and need > 0:
+                    interrupted(f"collect stage with {have:,} samples in {folder}")
         return
 
     collect_robodesk(args, folder, need, have, rng_seed, progress, stop)
+
+
+class Workers:
+    """``workers`` processes (spawned: each starts its own simulator and renderer) that run ``fn`` over
+    jobs and hand the results back in the jobs' order, so the data do not depend on their number; one
+    worker runs the jobs in this process. ``context`` is what every worker sets up once (WORKER)."""
+
+    def __init__(self, workers: int, fn, context: dict):
+        self.workers, self.fn, self.context, self.pool = workers, fn, context, None
+
+    def __enter__(self):
+        if self.workers > 1:
+            spawn = mp.get_context("spawn")
+            self.pool = spawn.Pool(self.workers, init_worker, (self.context, True))
+        else:
+            init_worker(self.context, False)
+        return self.results
+
+    def results(self, jobs):
+        return self.pool.imap(self.fn, jobs) if self.pool else map(self.fn, jobs)
+
+    def __exit__(self, *exc) -> None:
+        if self.pool:
+            self.pool.terminate()  # nothing is left to do (or Ctrl-C stopped the stage): no waiting
+            self.pool.join()
+        for env in WORKER.pop("envs", {}).values():
+            env.close()
+
+
+WORKER: dict = {}  # what one collecting process keeps between jobs: its settings, envs and expert programs
+
+
+def init_worker(context: dict, subprocess: bool) -> None:
+    if subprocess:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle
+        torch.set_num_threads(1)
+    WORKER.clear()
+    WORKER.update(context, envs={})
+    paths = context.get("learned", {})
+    WORKER["learned"] = {task: ExpertProgram(Path(p)) for task, p in paths.items()}
+
+
+def shapes_shard(job: tuple[int, int, float]) -> dict[str, np.ndarray]:
+    """One Simple Shapes shard: ``n`` random states drawn with ``seed`` and rendered."""
+    from envs.simple_shapes import sample_dataset
+
+    n, seed, wide_share = job
+    return sample_dataset(n, seed=seed, wide_share=wide_share)
 
 
 def robodesk_plan(args: Args, need: int, learned: tuple[str, ...] = ()) -> list[tuple[str, str, int]]:
@@ -687,13 +740,49 @@ def load_expert_policies(paths: tuple[str, ...], expert_tasks: list[str]) -> dic
     return out
 
 
+def episode_seed(seed: int, block: int, episode: int) -> int:
+    """The seed of one collected episode (its reset, random actions and expert noise): episodes do not
+    share a random stream, so any process can run any of them."""
+    return int(np.random.SeedSequence([seed, block, episode]).generate_state(1)[0])
+
+
+def robodesk_episode(job: tuple[str, str, int, int]) -> dict:
+    """One episode of the scripted expert, the exported policy or the random policy of ``task``, cut at
+    ``n`` samples: the observations (image, attributes) seen before each action."""
+    from envs.robodesk import RoboDeskEnv
+    from envs.robodesk_experts import EXPERTS
+
+    source, task, n, seed = job
+    if task not in WORKER["envs"]:
+        WORKER["envs"][task] = RoboDeskEnv(task=task, render_quality=WORKER["render_quality"])
+    env, noise = WORKER["envs"][task], WORKER["noise"]
+    obs, _ = env.reset(seed=seed)
+    rng, policy = np.random.default_rng(seed), None
+    if source == "expert":
+        learned = WORKER["learned"].get(task)
+        policy = (
+            learned.start(noise=noise, seed=seed) if learned else EXPERTS[task](env, noise=noise, seed=seed)
+        )
+    images, attrs, done = [], [], False
+    while len(attrs) < n and not done:
+        images.append(obs["image"])
+        attrs.append(obs["attr"])
+        if isinstance(policy, LearnedExpert):
+            action = policy.act(obs)
+        else:
+            action = policy.act(env) if policy is not None else rng.uniform(-1, 1, 5)
+        obs, _, term, trunc, _ = env.step(action)
+        done = term or trunc
+    label = task if source == "expert" else ""  # random data are no task's (the task only sets the reward)
+    return {"image": np.stack(images), "attr": np.stack(attrs), "source": source, "task": label, "env": task}
+
+
 def collect_robodesk(
     args: Args, folder: Path, need: int, have: int, seed: int, progress: Progress, stop: StopRequest
 ) -> None:
     """Full episodes of the scripted experts (with action noise) and of a uniformly random policy, in the
-    proportions of ``robodesk_plan``, written as labelled shards."""
+    proportions of ``robodesk_plan``, written as labelled shards; ``--workers`` processes run them."""
     from envs.robodesk import RoboDeskEnv
-    from envs.robodesk_experts import EXPERTS
 
     learned = load_expert_policies(args.expert_checkpoint, list(args.tasks or (args.task,)))
     blocks = robodesk_plan(args, need, tuple(learned))
@@ -704,52 +793,43 @@ def collect_robodesk(
                 f"the dreamer_baseline.py policy {learned[t].path}" if t in learned else "its scripted expert"
             )
             print(f"[collect] expert data of {t}: {who}")
-    buf = {"image": [], "attr": [], "source": [], "task": []}
+    defaults = inspect.signature(RoboDeskEnv).parameters  # the env the episodes run in: the paper's
+    steps = defaults["episode_length"].default // defaults["action_repeat"].default  # 500, no early end
+    jobs = [
+        (src, t, min(steps, n - e * steps), episode_seed(seed, b, e))
+        for b, (src, t, n) in enumerate(blocks)
+        for e in range(math.ceil(n / steps))
+    ]
+    buf, pending = {"image": [], "attr": [], "source": [], "task": []}, 0  # episodes not yet in a shard
 
     def flush(force: bool) -> None:
-        nonlocal have
-        while len(buf["attr"]) >= args.shard_size or (force and buf["attr"]):
-            k = min(args.shard_size, len(buf["attr"]))
-            images, attrs = np.stack(buf["image"][:k]), np.stack(buf["attr"][:k])
-            write_shard(folder, images, attrs, buf["source"][:k], buf["task"][:k])
-            for key in buf:
-                del buf[key][:k]
-            have += k
+        nonlocal have, pending
+        if pending < args.shard_size and not (force and pending):
+            return
+        data = {key: np.concatenate(v) for key, v in buf.items()}
+        k = 0
+        while pending - k >= args.shard_size or (force and k < pending):
+            m = min(args.shard_size, pending - k)
+            write_shard(folder, *(data[key][k : k + m] for key in ("image", "attr", "source", "task")))
+            k += m
+        buf.update({key: [v[k:]] if k < pending else [] for key, v in data.items()})
+        have, pending = have + k, pending - k
 
-    rng = np.random.default_rng(seed)
-    for b, (source, task, n) in enumerate(blocks):
-        env = RoboDeskEnv(task=task, render_quality=args.render_quality)
-        policy = None
-        if source == "expert" and task in learned:
-            policy = learned[task].start(noise=args.expert_noise, seed=seed + b)
-        elif source == "expert":
-            policy = EXPERTS[task](env, noise=args.expert_noise, seed=seed + b)
-        left, episode = n, 0
-        while left > 0:
-            obs, _ = env.reset(seed=seed + 1_000 * b + episode)
-            episode += 1
-            if policy is not None:
-                policy.reset()
-            done = False
-            while not done and left > 0:
-                buf["image"].append(obs["image"])
-                buf["attr"].append(obs["attr"])
-                buf["source"].append(source)
-                buf["task"].append(task if source == "expert" else "")
-                left -= 1
-                if isinstance(policy, LearnedExpert):
-                    action = policy.act(obs)
-                else:
-                    action = policy.act(env) if policy is not None else rng.uniform(-1, 1, 5)
-                obs, _, term, trunc, _ = env.step(action)
-                done = term or trunc
+    context = {"render_quality": args.render_quality, "noise": args.expert_noise}
+    context["learned"] = {t: str(program.path) for t, program in learned.items()}
+    with Workers(args.workers, robodesk_episode, context) as results:
+        for ep in results(jobs):
+            n = len(ep["attr"])
+            for key in ("image", "attr"):
+                buf[key].append(ep[key])
+            buf["source"].append(np.full(n, ep["source"]))
+            buf["task"].append(np.full(n, ep["task"]))
+            pending += n
             flush(stop.requested)  # Ctrl-C: the samples so far go to a shard of their own
             # one line per episode (a 50k-sample shard is a quarter of an hour of RoboDesk on a CPU)
-            progress.show(have + len(buf["attr"]), f"({source}, {task})")
+            progress.show(have + pending, f"({ep['source']}, {ep['env']})")
             if stop.requested:
-                env.close()
                 interrupted(f"collect stage with {have:,} samples in {folder}")
-        env.close()
     flush(True)
 
 

@@ -351,6 +351,8 @@ def test_defaults_follow_the_tables():
     assert table == (64, 32, 4.0, 1e-3, 20)
     assert (rd.batch_size, rd.batch_length, rd.train_ratio, rd.wm_lr, rd.ac_lr) == (32, 128, 2.0, 3e-4, 3e-4)
     assert ss.buffer_size == rd.buffer_size == 100_000 and ss.lam == 0.95 and ss.imag_from == "last"
+    # L_WM's weights, which the paper does not give: the z term 10, reward and done 1 (docs/paper_readings.md)
+    assert (ss.wm_z_coef, ss.wm_reward_coef, ss.wm_done_coef) == (10.0, 1.0, 1.0)
     sizes = {
         k: sum(p.numel() for p in getattr(G.Agent("robodesk", 76, "twohot"), k).parameters()) for k in ("wm",)
     }

@@ -254,3 +254,17 @@ def test_wide_share_is_checked():
 def test_flags_given_explicitly_override_the_cpu_preset():
     args = P.Args(cpu_preset=True, vae_width=128, vae_steps=2_400).resolve()
     assert (args.vae_width, args.vae_steps, args.vae_batch_size) == (128, 2_400, 128)
+
+
+def test_two_collecting_workers_give_the_simple_shapes_data_of_one(tmp_path):
+    """Simple Shapes shards drawn by two processes are those one process draws (one seed per shard)."""
+    for workers in ("1", "2"):
+        (tmp_path / workers).mkdir()
+        flags = "--env simple_shapes --stages collect --n-samples 700 --shard-size 300 --workers"
+        run_pretrain(tmp_path / workers, *flags.split(), workers)
+    one, two = (P.shard_paths(tmp_path / w / "data" / "simple_shapes") for w in ("1", "2"))
+    assert [len(np.load(p)["attr"]) for p in one] == [300, 300, 100]
+    for a, b in zip(one, two, strict=True):
+        with np.load(a) as x, np.load(b) as y:
+            for key in ("image", "attr", "source"):
+                np.testing.assert_array_equal(x[key], y[key], err_msg=key)
