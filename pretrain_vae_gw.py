@@ -9,6 +9,12 @@ Paper: "Model / Global Workspace" (eq. 1-3), appendix "VAE details" and "GW deta
 
 Stages run in the order collect -> vae -> gw; each can run alone (``--stages vae``). Outputs go to
 ``checkpoints/<env>/{vae,gw,clip}.pt`` (data to ``data/<env>/``), where the agents find them.
+
+    torchrun --nproc_per_node 4 pretrain_vae_gw.py --env robodesk --stages vae gw --stream-shards 4
+
+Under torchrun the vae and gw stages train with DistributedDataParallel (gloo on a CPU, NCCL on GPUs):
+each process computes its slice of every global batch, and rank 0 alone logs and saves; the result is
+the one-process result for the same global batch (``--vae-batch-size``, ``--gw-batch-size``).
 """
 
 from __future__ import annotations
@@ -23,15 +29,19 @@ import signal
 import sys
 import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 import torch
+import torch.distributed as dist
+import torch.distributed.nn.functional as dist_nn
 import torch.nn as nn
 import torch.nn.functional as F
 import tyro
+from torch.nn.parallel import DistributedDataParallel as DDP
 from torch.utils.tensorboard import SummaryWriter
 
 import envs  # noqa: F401  (registers the environments)
@@ -88,6 +98,10 @@ class Args:
     workers: int = 1
     """collect stage: processes side by side, each with its own simulator and renderer (RoboDesk: one
     episode at a time; Simple Shapes: one shard at a time); the data are the same for any number"""
+    stream_shards: int = 0
+    """vae and gw stages: 0 loads every shard into memory; K > 0 streams them, K shards in memory at a
+    time (the next one read ahead), so memory stays at about K + 1 shards whatever the data's size; the
+    visual VAE then samples its batches from those K shards (docs/pretrain_vae_gw.md)"""
     render_quality: Literal["faithful", "fast"] = "faithful"
     """RoboDesk image quality of the collected data (fast: CPU experiments only, docs/environments.md)"""
 
@@ -376,6 +390,8 @@ def stage_identity(args: Args, stage: str, vae_fingerprint: float | None = None)
     weights of the VAEs it encodes with."""
     keys = VAE_KEYS if stage == "vae" else GW_KEYS
     out = {k: getattr(args, k) for k in keys} | data_identity(args)
+    if stage == "vae" and args.stream_shards:  # streamed batches are other batches (the gw stage's are not)
+        out["stream_shards"] = args.stream_shards
     return out | ({"vae_fingerprint": vae_fingerprint} if stage == "gw" else {})
 
 
@@ -445,8 +461,18 @@ def check_settings(args: Args) -> None:
     at_least_1 = "n_samples shard_size vae_steps attr_updates_per_step gw_steps log_every save_every"
     for flag in (at_least_1 + " eval_size").split():
         require(getattr(args, flag) >= 1, flag, getattr(args, flag), "must be at least 1")
+    world = int(os.environ.get("WORLD_SIZE", 1))  # torchrun's processes share each global batch
     for flag in ("vae_batch_size", "gw_batch_size"):  # batch norm and the contrastive loss pair samples
         require(getattr(args, flag) >= 2, flag, getattr(args, flag), "must be at least 2")
+        rule = f"must be a multiple of the {world} processes of torchrun"
+        require(getattr(args, flag) % world == 0, flag, getattr(args, flag), rule)
+    require(args.workers >= 1, "workers", args.workers, "must be at least 1")
+    if world > 1 and "collect" in args.stages:
+        raise UsageError(
+            "the collect stage runs in one process (its --workers run episodes side by side): collect "
+            "first without torchrun, then run the vae and gw stages under it (--stages vae gw)"
+        )
+    require(args.stream_shards >= 0, "stream_shards", args.stream_shards, "must not be negative")
     positive = "vae_lr_v vae_lr_attr vae_lr_start_end gw_lr gw_lr_start_end fusion_temperature"
     for flag in (positive + " contrastive_temperature").split():
         require(getattr(args, flag) > 0, flag, getattr(args, flag), "must be positive")
@@ -834,6 +860,258 @@ def collect_robodesk(
 
 
 # --------------------------------------------------------------------------------------------------
+# Training data, in memory or streamed from the shards; one process or many (torchrun)
+# --------------------------------------------------------------------------------------------------
+class InMemory:
+    """Every shard loaded at once (--stream-shards 0): sampling from the whole data, memory that grows
+    with it (12.3 kB per RoboDesk sample). The first ``n_eval`` samples are held out."""
+
+    def __init__(self, folder: Path, env: str, n_eval: int):
+        self.images, self.attrs = load_data(folder, env)
+        self.env, self.train_idx = env, np.arange(n_eval, len(self.attrs))
+
+    def __len__(self) -> int:
+        return len(self.attrs)
+
+    def held_out(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        return self.images[:n], self.attrs[:n]
+
+    def train_attr_moments(self) -> tuple[np.ndarray, np.ndarray]:
+        return normaliser(self.attrs[self.train_idx], self.env)
+
+    def advance(self, step: int) -> None:  # the whole data is always there
+        pass
+
+    def batch(self, rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
+        idx = rng.choice(self.train_idx, n)
+        return self.images[idx], self.attrs[idx]
+
+    def attr_batch(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        return self.attrs[rng.choice(self.train_idx, n)]
+
+    def chunks(self):
+        """(images, attributes) of every sample, in order (the GW stage encodes them)."""
+        yield self.images, self.attrs
+
+
+class Streamed:
+    """--stream-shards K: K shards in memory, from which batches are drawn as from the whole data; every
+    ``period`` steps the oldest gives way to the next shard of a shuffled order (a new one per pass), read
+    ahead in a thread and copied into the slot it frees. Memory: about K + 1 shards, whatever the number
+    of shards. The shard order and the batches depend only on the seed and the step, so every process of
+    a torchrun draws the same ones."""
+
+    def __init__(self, folder: Path, env: str, n_eval: int, k: int, seed: int, batch: int):
+        self.paths, self.env, self.n_eval, self.seed = shard_paths(folder), env, n_eval, seed
+        if not self.paths:
+            load_data(folder, env)  # its message: no shards, and the command that collects them
+        self.sizes = []
+        for p in self.paths:
+            with np.load(p) as d:  # the attribute member only
+                self.sizes.append(len(d["attr"]))
+        self.starts = np.cumsum([0, *self.sizes[:-1]])  # global index of each shard's first sample
+        self.k = min(k, len(self.paths))
+        self.period = max(1, round(np.mean(self.sizes) / batch))  # about one pass over the data per pass
+        self.window, self.slots, self.lengths, self.perms = None, {}, {}, {}  # slots: shard -> buffer place
+        self.reader, self.ahead = ThreadPoolExecutor(1), None
+        room, spec = max(self.sizes), ENV_SPECS[env]
+        self.room = room
+        self.images = np.empty((self.k * room, spec["image"], spec["image"], 3), np.uint8)
+        self.attrs = np.empty((self.k * room, spec["attr"]), np.float32)
+
+    def __len__(self) -> int:
+        return int(sum(self.sizes))
+
+    def shard(self, i: int, train: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Shard i, checked; with ``train`` its held-out samples are removed."""
+        spec = ENV_SPECS[self.env]
+        with np.load(self.paths[i]) as d:
+            img, attr = d["image"], d["attr"]
+        if img.dtype != np.uint8 or img.shape[1:] != (spec["image"], spec["image"], 3):
+            raise UsageError(
+                f"{self.paths[i]}: images {img.dtype} {img.shape[1:]} do not match env {self.env}"
+            )
+        keep = max(0, self.n_eval - self.starts[i]) if train else 0
+        return img[keep:], attr[keep:]
+
+    def order(self, j: int) -> int:
+        """The j-th shard of the endless sequence of shuffled passes."""
+        p, r = divmod(j, len(self.paths))
+        if p not in self.perms:
+            self.perms = {p: np.random.default_rng([self.seed, p]).permutation(len(self.paths))}
+        return int(self.perms[p][r])
+
+    def advance(self, step: int) -> None:
+        """Before training step ``step`` (1-based): the K shards of that step in memory."""
+        c = (step - 1) // self.period
+        if c == self.window:
+            return
+        want, j = [], c
+        while len(want) < self.k:  # K different shards (a pass's end and the next pass's start may share one)
+            if self.order(j) not in want:
+                want.append(self.order(j))
+            j += 1
+        free = [slot for i, slot in self.slots.items() if i not in want]
+        free += [slot for slot in range(self.k) if slot not in self.slots.values()]
+        self.slots = {i: slot for i, slot in self.slots.items() if i in want}
+        rows = []
+        for i in want:
+            if i not in self.slots:  # read ahead (or now), then copied into a freed slot
+                ready = self.ahead is not None and self.ahead[0] == i
+                img, attr = self.ahead[1].result() if ready else self.shard(i, True)
+                self.slots[i] = slot = free.pop()
+                self.images[slot * self.room : slot * self.room + len(img)] = img
+                self.attrs[slot * self.room : slot * self.room + len(attr)] = attr
+                self.lengths[i] = len(attr)
+            rows.append(self.slots[i] * self.room + np.arange(self.lengths[i]))
+        self.rows = np.concatenate(rows)  # buffer rows of the K shards, in the order of ``want``
+        nxt = self.order(j)
+        self.ahead = (nxt, self.reader.submit(self.shard, nxt, True)) if nxt not in want else None
+        self.window = c
+
+    def batch(self, rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
+        idx = self.rows[rng.integers(0, len(self.rows), n)]
+        return self.images[idx], self.attrs[idx]
+
+    def attr_batch(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        return self.attrs[self.rows[rng.integers(0, len(self.rows), n)]]
+
+    def held_out(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        parts, have = [], 0
+        for i in range(len(self.paths)):
+            if have >= n:
+                break
+            parts.append(self.shard(i, False))
+            have += len(parts[-1][1])
+        return np.concatenate([p[0] for p in parts])[:n], np.concatenate([p[1] for p in parts])[:n]
+
+    def train_attr_moments(self) -> tuple[np.ndarray, np.ndarray]:
+        """The normaliser's mean and std over the training attributes, one shard at a time."""
+        if self.env == "simple_shapes":
+            return normaliser(np.zeros((1, ENV_SPECS[self.env]["attr"]), np.float32), self.env)
+        total, sq, count = 0.0, 0.0, 0
+        for i in range(len(self.paths)):
+            keep = max(0, self.n_eval - self.starts[i])
+            with np.load(self.paths[i]) as d:
+                a = d["attr"][keep:].astype(np.float64)
+            total, sq, count = total + a.sum(0), sq + (a * a).sum(0), count + len(a)
+        mean = total / count
+        std = np.sqrt(np.maximum(sq / count - mean**2, 0.0))
+        return mean.astype(np.float32), (std + 1e-6).astype(np.float32)
+
+    def chunks(self):
+        for i in range(len(self.paths)):
+            yield self.shard(i, False)
+
+
+def training_data(args: Args, n_eval: int, batch: int):
+    folder = env_dir(args.data_dir, args)
+    if args.stream_shards:
+        return Streamed(folder, args.env, n_eval, args.stream_shards, args.seed, batch)
+    return InMemory(folder, args.env, n_eval)
+
+
+def data_size(args: Args) -> int:
+    """Samples in the data folder, read from the shards' attribute members only."""
+    total = 0
+    for p in shard_paths(env_dir(args.data_dir, args)):
+        with np.load(p) as d:
+            total += len(d["attr"])
+    return total
+
+
+def start_processes(args: Args) -> tuple[int, int]:
+    """(rank, number of processes): under torchrun the process group (gloo on a CPU, NCCL on GPUs, one
+    GPU per process), else (0, 1)."""
+    world = int(os.environ.get("WORLD_SIZE", 1))
+    if world == 1:
+        return 0, 1
+    if not dist.is_initialized():
+        cuda = args.device.startswith("cuda")
+        if cuda:
+            args.device = f"cuda:{int(os.environ.get('LOCAL_RANK', 0))}"
+            torch.cuda.set_device(args.device)
+        dist.init_process_group("nccl" if cuda else "gloo")
+    return dist.get_rank(), world
+
+
+def my_slice(x, rank: int, world: int):
+    """This process's rows of a global batch (contiguous slices, in rank order)."""
+    n = len(x) // world
+    return x[rank * n : (rank + 1) * n]
+
+
+def gather_rows(x: torch.Tensor) -> torch.Tensor:
+    """Every process's rows, in rank order, with gradients flowing back to each process's own."""
+    if not (dist.is_initialized() and dist.get_world_size() > 1):
+        return x
+    return torch.cat(dist_nn.all_gather(x))
+
+
+def barrier() -> None:
+    """Under torchrun: wait until every process is here."""
+    if dist.is_initialized() and dist.get_world_size() > 1:
+        dist.barrier()
+
+
+def any_process(flag: bool) -> bool:
+    """True if any process has ``flag`` set (a Ctrl-C reaches them at different steps)."""
+    if not (dist.is_initialized() and dist.get_world_size() > 1):
+        return flag
+    t = torch.tensor([float(flag)], device="cuda" if dist.get_backend() == "nccl" else "cpu")
+    dist.all_reduce(t, op=dist.ReduceOp.MAX)
+    return bool(t.item())
+
+
+class GlobalBatchNorm2d(nn.BatchNorm2d):
+    """BatchNorm over the global batch of all processes (what SyncBatchNorm does, but on any backend:
+    torch's own needs a GPU), so that many processes train what one process does on the whole batch.
+    One process: plain BatchNorm2d."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if not (self.training and dist.is_initialized() and dist.get_world_size() > 1):
+            return super().forward(x)
+        c = x.shape[1]
+        count = torch.full((1,), x.numel() / c, device=x.device, dtype=x.dtype)
+        stats = dist_nn.all_reduce(torch.cat([x.sum((0, 2, 3)), (x * x).sum((0, 2, 3)), count]))
+        n = stats[-1]
+        mean = stats[:c] / n
+        var = stats[c : 2 * c] / n - mean * mean
+        with torch.no_grad():
+            self.running_mean.lerp_(mean, self.momentum)
+            self.running_var.lerp_(var * n / (n - 1), self.momentum)
+            self.num_batches_tracked += 1
+        scale = self.weight / torch.sqrt(var + self.eps)
+        return x * scale[None, :, None, None] + (self.bias - mean * scale)[None, :, None, None]
+
+
+def global_batch_norm(module: nn.Module) -> nn.Module:
+    """``module`` with its BatchNorm2d layers computing global-batch statistics (same state dict)."""
+    for m in module.modules():
+        if type(m) is nn.BatchNorm2d:
+            m.__class__ = GlobalBatchNorm2d
+    return module
+
+
+class Loss(nn.Module):
+    """``fn(module, *inputs)`` as a module, so that DistributedDataParallel wraps the loss computation
+    (its gradient averaging starts in forward)."""
+
+    def __init__(self, module: nn.Module, fn):
+        super().__init__()
+        self.module, self.fn = module, fn
+
+    def forward(self, *inputs):
+        return self.fn(self.module, *inputs)
+
+
+def parallel(module: nn.Module, fn, world: int) -> nn.Module:
+    """The loss of ``module`` as DistributedDataParallel across the processes (or as it is for one)."""
+    loss = Loss(module, fn)
+    return DDP(loss, broadcast_buffers=False) if world > 1 else loss
+
+
+# --------------------------------------------------------------------------------------------------
 # Stage 2: beta-VAEs (appendix Tables VAE_v and VAE_attr)
 # --------------------------------------------------------------------------------------------------
 def conv_block(cin: int, cout: int, transpose: bool = False, stride: int = 2) -> nn.Sequential:
@@ -877,9 +1155,11 @@ class VisualVAE(nn.Module):
     def decode(self, u: torch.Tensor) -> torch.Tensor:
         return self.decoder(self.fc(u).view(-1, self.width, 8, 8))
 
-    def loss(self, x: torch.Tensor, beta: float):
+    def loss(self, x: torch.Tensor, beta: float, eps: torch.Tensor | None = None):
+        """beta-VAE loss; ``eps``: the reparameterisation noise (default: drawn here)."""
         mean, logvar = self.encode(x)
-        u = mean + torch.randn_like(mean) * (0.5 * logvar).exp()
+        eps = torch.randn_like(mean) if eps is None else eps
+        u = mean + eps * (0.5 * logvar).exp()
         recon = ((self.decode(u) - x) ** 2).flatten(1).sum(1).mean()  # unit-variance Gaussian
         kl = (-0.5 * (1 + logvar - mean**2 - logvar.exp()).sum(1)).mean()
         return recon + beta * kl, recon, kl
@@ -923,9 +1203,10 @@ class AttrVAE(nn.Module):
             return torch.cat([one_hot, out[:, self.n_classes :]], 1)
         return out
 
-    def loss(self, a: torch.Tensor, beta: float):
+    def loss(self, a: torch.Tensor, beta: float, eps: torch.Tensor | None = None):
         mean, logvar = self.encode(a)
-        u = mean + torch.randn_like(mean) * (0.5 * logvar).exp()
+        eps = torch.randn_like(mean) if eps is None else eps
+        u = mean + eps * (0.5 * logvar).exp()
         out = self.decode_raw(u)
         if self.n_classes:
             recon = (
@@ -996,13 +1277,12 @@ def train_vae(args: Args, writer: SummaryWriter, stop: StopRequest) -> None:
     identity = stage_identity(args, "vae")
     if stage_is_done(path, identity, args):
         return
-    images, attrs = load_data(env_dir(args.data_dir, args), args.env)
-    n_eval = min(args.eval_size, len(images) // 10)
-    train_idx = np.arange(n_eval, len(images))
-    mean, std = normaliser(attrs[train_idx], args.env)
-    attrs_n = (attrs - mean) / std
+    rank, world = start_processes(args)
+    n_eval = min(args.eval_size, data_size(args) // 10)
+    data = training_data(args, n_eval, args.vae_batch_size)
+    mean, std = data.train_attr_moments()
     dev = torch.device(args.device)
-    torch.manual_seed(args.seed)
+    torch.manual_seed(args.seed)  # every process draws the same noise for the global batch
     vae_v, vae_attr = make_vaes(args.env, args.vae_width)
     # channels-last weights: with 16-channel 32x32 maps, oneDNN's CPU kernels ran ~1.4x faster here
     vae_v.to(dev, memory_format=torch.channels_last), vae_attr.to(dev)
@@ -1024,43 +1304,57 @@ def train_vae(args: Args, writer: SummaryWriter, stop: StopRequest) -> None:
         for o, s, so, ss in zip(opts, scheds, ck["opts"], ck["scheds"], strict=True):
             o.load_state_dict(so), s.load_state_dict(ss)
         start = ck["step"]
+    # Many processes: each computes its slice of the global batch, gradients averaged (DDP), batch norm
+    # over the global batch, so the updates are the one-process updates.
+    loss_v_of = parallel(global_batch_norm(vae_v), VisualVAE.loss, world)
+    loss_a_of = parallel(vae_attr, AttrVAE.loss, world)
+    latent = ENV_SPECS[args.env]["latent"]
 
     def save_partial(step: int) -> None:
         state = {"opts": [o.state_dict() for o in opts], "scheds": [s.state_dict() for s in scheds]}
         weights = {"vae_v": vae_v.state_dict(), "vae_attr": vae_attr.state_dict()}
-        atomic_save(weights | state | {"step": step, "identity": identity}, partial)
+        if rank == 0:
+            atomic_save(weights | state | {"step": step, "identity": identity}, partial)
 
     rng = np.random.default_rng(args.seed + start)
     progress = Progress("vae", args.vae_steps, start)
     vae_v.train(), vae_attr.train()
+    b = args.vae_batch_size
     for step in range(start + 1, args.vae_steps + 1):
-        idx = rng.choice(train_idx, args.vae_batch_size)
-        loss_v, recon_v, kl_v = vae_v.loss(images_to_tensor(images[idx], dev), args.beta_v)
+        data.advance(step)
+        images, attrs = data.batch(rng, b)  # the global batch, the same in every process
+        eps = my_slice(torch.randn(b, latent, device=dev), rank, world)
+        x = images_to_tensor(my_slice(images, rank, world), dev)
+        loss_v, recon_v, kl_v = loss_v_of(x, args.beta_v, eps)
         optimise(opts[0], scheds[0], loss_v, f"[vae] visual loss at step {step}; last good state: {partial}")
         for k in range(args.attr_updates_per_step):  # the attribute VAE is tiny: extra updates are cheap
-            a = torch.as_tensor(
-                attrs_n[idx if k == 0 else rng.choice(train_idx, args.vae_batch_size)], device=dev
+            a_raw = attrs if k == 0 else data.attr_batch(rng, b)
+            a = torch.as_tensor((my_slice(a_raw, rank, world) - mean) / std, device=dev)
+            loss_a, recon_a, kl_a = loss_a_of(
+                a, args.beta_attr, my_slice(torch.randn(b, latent, device=dev), rank, world)
             )
-            loss_a, recon_a, kl_a = vae_attr.loss(a, args.beta_attr)
             optimise(opts[1], scheds[1], loss_a, f"[vae] attribute loss at step {step}; last good: {partial}")
-        if step % args.log_every == 0 or step == args.vae_steps:
+        if rank == 0 and (step % args.log_every == 0 or step == args.vae_steps):
             for k, v in dict(
                 loss_v=loss_v, recon_v=recon_v, kl_v=kl_v, loss_attr=loss_a, recon_attr=recon_a, kl_attr=kl_a
             ).items():
                 writer.add_scalar(f"losses/vae_{k}", v.item(), step)
             writer.add_scalar("charts/vae_lr_v", scheds[0].get_last_lr()[0], step)
             progress.show(step, f"recon_v {recon_v.item():.2f} recon_attr {recon_a.item():.3f}")
-        if (step % args.save_every == 0 or stop.requested) and step < args.vae_steps:
+        stopping = any_process(stop.requested)
+        if (step % args.save_every == 0 or stopping) and step < args.vae_steps:
             save_partial(step)
-        if stop.requested and step < args.vae_steps:
+        if stopping and step < args.vae_steps:
             interrupted(f"vae stage at step {step:,}: saved {partial}")
     vae_v.eval(), vae_attr.eval()
+    if rank > 0:
+        return barrier()  # rank 0 evaluates and writes the checkpoint the next stage reads
+    images, attrs = data.held_out(n_eval)
     with torch.no_grad():
-        ev = np.arange(n_eval)
-        x = images_to_tensor(images[ev], dev)
+        x = images_to_tensor(images, dev)
         rec = vae_v.decode(vae_v.encode(x)[0])
         mse_v = F.mse_loss(rec, x).item()
-        a = torch.as_tensor(attrs_n[ev], device=dev)
+        a = torch.as_tensor((attrs - mean) / std, device=dev)
         mse_attr = F.mse_loss(vae_attr.decode(vae_attr.encode(a)[0]), a).item()
         writer.add_images("vae/reconstructions", torch.cat([x[:8], rec[:8]]), args.vae_steps)
     print(
@@ -1079,7 +1373,7 @@ def train_vae(args: Args, writer: SummaryWriter, stop: StopRequest) -> None:
             "attr_std": std,
             "data": {
                 "folder": str(env_dir(args.data_dir, args)),
-                "n_samples": len(images),
+                "n_samples": len(data),
                 "eval_samples": n_eval,
                 "samples_per_source_and_task": label_counts(env_dir(args.data_dir, args)),
             },
@@ -1089,6 +1383,7 @@ def train_vae(args: Args, writer: SummaryWriter, stop: StopRequest) -> None:
     )
     partial.unlink(missing_ok=True)
     print(f"[vae] wrote {path}")
+    barrier()
 
 
 # --------------------------------------------------------------------------------------------------
@@ -1147,10 +1442,17 @@ def gw_losses(
     loss_fusion = sum(F.mse_loss(u_fusion[x], u[x]) for x in u) / 2
     # CLIP-style symmetric cross-entropy on L2-normalised pre-fusion encodings, fixed temperature.
     zv, za = F.normalize(z_pre["v"], dim=-1), F.normalize(z_pre["attr"], dim=-1)
+    zv, za = gather_rows(zv), gather_rows(za)  # every pair of the global batch (torchrun: all processes)
     logits = zv @ za.T / temperature
     target = torch.arange(len(zv), device=zv.device)
     loss_cont = (F.cross_entropy(logits, target) + F.cross_entropy(logits.T, target)) / 2
     return {"dcy": loss_dcy, "cy": loss_cy, "tr": loss_tr, "fusion": loss_fusion, "cont": loss_cont}
+
+
+def gw_terms(
+    gw: GlobalWorkspace, u_v: torch.Tensor, u_a: torch.Tensor, alpha: torch.Tensor, temperature: float
+):
+    return gw_losses(gw, {"v": u_v, "attr": u_a}, alpha, temperature)
 
 
 def fusion_weights(batch: int, temperature: float, generator: torch.Generator, device) -> torch.Tensor:
@@ -1170,18 +1472,23 @@ def encode_unimodal(vae_v, vae_attr, images, attrs_n, device, batch: int = 1024)
 
 
 def train_gw(args: Args, writer: SummaryWriter, stop: StopRequest) -> None:
-    dev = torch.device(args.device)
     vae_v, vae_attr, vae_ckpt = load_vaes(env_dir(args.checkpoint_dir, args) / "vae.pt", args.env)
     path = env_dir(args.checkpoint_dir, args) / f"{args.loss_preset}.pt"
     fingerprint = float(sum(p.double().sum() for p in [*vae_v.parameters(), *vae_attr.parameters()]))
     identity = stage_identity(args, "gw", fingerprint)
     if stage_is_done(path, identity, args):
         return
+    rank, world = start_processes(args)
+    dev = torch.device(args.device)
     vae_v.to(dev), vae_attr.to(dev)
-    images, attrs = load_data(env_dir(args.data_dir, args), args.env)
-    attrs_n = (attrs - vae_ckpt["attr_mean"]) / vae_ckpt["attr_std"]
     n_eval = vae_ckpt["data"]["eval_samples"]
-    u_v, u_a = encode_unimodal(vae_v, vae_attr, images, attrs_n, dev)
+    data = training_data(args, n_eval, args.gw_batch_size)
+    encoded = [  # the frozen VAE means of every sample, one chunk (streamed: one shard) at a time
+        encode_unimodal(vae_v, vae_attr, images, (attrs - vae_ckpt["attr_mean"]) / vae_ckpt["attr_std"], dev)
+        for images, attrs in data.chunks()
+    ]
+    u_v, u_a = (torch.cat(u) for u in zip(*encoded, strict=True))
+    del encoded
     spec = ENV_SPECS[args.env]
     torch.manual_seed(args.seed)
     gw = GlobalWorkspace(spec["latent"], spec["z"], spec["gw_hidden"]).to(dev)
@@ -1198,10 +1505,14 @@ def train_gw(args: Args, writer: SummaryWriter, stop: StopRequest) -> None:
     gen = torch.Generator().manual_seed(args.seed + start)
     progress = Progress(args.loss_preset, args.gw_steps, start)
     n = len(u_v)
+    # Many processes: each its slice of the global batch, gradients averaged (DDP); the contrastive term
+    # compares every pair of the global batch (gathered), so the updates are the one-process updates.
+    terms_of = parallel(gw, gw_terms, world)
     for step in range(start + 1, args.gw_steps + 1):
-        idx = torch.randint(n_eval, n, (args.gw_batch_size,), generator=gen).to(dev)
+        idx = torch.randint(n_eval, n, (args.gw_batch_size,), generator=gen).to(dev)  # the global batch
         alpha = fusion_weights(args.gw_batch_size, args.fusion_temperature, gen, dev)
-        terms = gw_losses(gw, {"v": u_v[idx], "attr": u_a[idx]}, alpha, args.contrastive_temperature)
+        idx, alpha = my_slice(idx, rank, world), my_slice(alpha, rank, world)
+        terms = terms_of(u_v[idx], u_a[idx], alpha, args.contrastive_temperature)
         loss_gw = sum(betas[k] * terms[k] for k in terms)  # eq. 2-3
         if not torch.isfinite(loss_gw):
             raise FloatingPointError(f"[gw] non-finite loss at step {step}; last good state: {partial}")
@@ -1209,18 +1520,22 @@ def train_gw(args: Args, writer: SummaryWriter, stop: StopRequest) -> None:
         loss_gw.backward()
         opt.step()
         sched.step()
-        if step % args.log_every == 0 or step == args.gw_steps:
+        if rank == 0 and (step % args.log_every == 0 or step == args.gw_steps):
             writer.add_scalar("losses/loss_gw", loss_gw.item(), step)
             for k, v in terms.items():
                 writer.add_scalar(f"losses/loss_{k}", v.item(), step)
             writer.add_scalar("charts/gw_lr", sched.get_last_lr()[0], step)
             progress.show(step, " ".join(f"{k} {v.item():.4f}" for k, v in terms.items()))
-        if (step % args.save_every == 0 or stop.requested) and step < args.gw_steps:
+        stopping = any_process(stop.requested)
+        if rank == 0 and (step % args.save_every == 0 or stopping) and step < args.gw_steps:
             state = {"gw": gw.state_dict(), "opt": opt.state_dict(), "sched": sched.state_dict()}
             atomic_save(state | {"step": step, "identity": identity}, partial)
-        if stop.requested and step < args.gw_steps:
+        if stopping and step < args.gw_steps:
             interrupted(f"{args.loss_preset} stage at step {step:,}: saved {partial}")
     gw.eval()
+    if rank > 0:
+        return barrier()  # rank 0 evaluates and writes the checkpoint the next stage reads
+    images, attrs = data.held_out(n_eval)
     figures = evaluate_gw(args, gw, vae_v, vae_attr, vae_ckpt, images, attrs, u_v, u_a, n_eval, writer)
     atomic_save(
         {
@@ -1239,6 +1554,7 @@ def train_gw(args: Args, writer: SummaryWriter, stop: StopRequest) -> None:
     )
     partial.unlink(missing_ok=True)
     print(f"[gw] wrote {path}")
+    barrier()
 
 
 def evaluate_gw(args, gw, vae_v, vae_attr, vae_ckpt, images, attrs, u_v, u_a, n_eval, writer) -> dict:
@@ -1329,12 +1645,13 @@ def main(args: Args) -> None:
         torch.set_num_threads(args.torch_threads)
     np.random.seed(args.seed)
     torch.manual_seed(args.seed)
-    run_name = f"{args.exp_name}_{args.env}_{args.loss_preset}_{args.seed}_{int(time.time())}"
-    writer = SummaryWriter(f"runs/{run_name}")
-    writer.add_text(
-        "hyperparameters",
-        "|param|value|\n|-|-|\n" + "\n".join(f"|{k}|{v}|" for k, v in vars(args).items()),
-    )
+    rank = int(os.environ.get("RANK", 0))  # torchrun: rank 0 alone logs and saves
+    writer = None
+    if rank == 0:
+        run_name = f"{args.exp_name}_{args.env}_{args.loss_preset}_{args.seed}_{int(time.time())}"
+        writer = SummaryWriter(f"runs/{run_name}")
+        table = "\n".join(f"|{k}|{v}|" for k, v in vars(args).items())
+        writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + table)
     t0 = time.time()
     with StopRequest("pretrain") as stop:  # Ctrl-C: the stage saves what it has and the run exits 130
         if "collect" in args.stages:
@@ -1343,8 +1660,11 @@ def main(args: Args) -> None:
             train_vae(args, writer, stop)
         if "gw" in args.stages:
             train_gw(args, writer, stop)
-    writer.close()
-    print(f"done in {(time.time() - t0) / 60:.1f} min")
+    if writer is not None:
+        writer.close()
+        print(f"done in {(time.time() - t0) / 60:.1f} min")
+    if dist.is_initialized():
+        dist.destroy_process_group()
 
 
 if __name__ == "__main__":
