@@ -179,15 +179,10 @@ class Args:
     """modality removed at evaluation: its input is zeroed (the image, or u_v for --obs vae)"""
 
     def resolve(self) -> Args:
-        """Per-environment defaults of the tables, then the size's network widths."""
-        ss = self.env == "simple_shapes"
-        for name, ss_value, rd_value in [
-            ("total_steps", 400_000, 1_000_000),
-            ("wm_lr", 1e-3, 3e-4),
-            ("size", "2m", "12m"),
-        ]:
+        """Per-environment defaults of the tables (TABLE), then the size's network widths."""
+        for name, value in TABLE[self.env].items():
             if getattr(self, name) is None:
-                setattr(self, name, ss_value if ss else rd_value)
+                setattr(self, name, value)
         for name, value in MODEL_SIZES[self.size].items():
             if getattr(self, name) is None:
                 setattr(self, name, value)
@@ -196,6 +191,12 @@ class Args:
         return self
 
 
+# The flags whose defaults differ between the environments (appendix Table "Hyperparameters used during
+# Dreamer training"; the step counts are the scale of the paper's Figure 3).
+TABLE = {
+    "simple_shapes": dict(total_steps=400_000, wm_lr=1e-3, size="2m"),
+    "robodesk": dict(total_steps=1_000_000, wm_lr=3e-4, size="12m"),
+}
 # Appendix table "Architecture details used in Dreamer baseline": GRU recurrent units (deter), dense hidden
 # units (units), RSSM hidden dimension (hidden) and the total size. The table does not give the CNN depth,
 # the MLP depth or the latent classes; they are chosen so that the printed total matches the table's
@@ -793,12 +794,13 @@ def actor_critic_loss(
     with torch.no_grad():
         w = torch.cumprod(torch.cat([torch.ones_like(conts[:1]), conts[:-1]]), 0) * start_w
         scale = agent.return_scale.update(returns)
+        norm = scale.clamp(min=1.0).to(returns.dtype)  # float64 state, float32 math
         slow_target = agent.twohot.mean(agent.slow_critic(feats[:-1].detach()))
     logp, entropy = agent.actor.log_prob(feats[:-1].detach(), dream.actions.detach())
     if dynamics:
-        objective = (returns - values[:-1].detach()) / scale.clamp(min=1.0)
+        objective = (returns - values[:-1].detach()) / norm
     else:
-        objective = logp * ((returns - values[:-1]) / scale.clamp(min=1.0)).detach()
+        objective = logp * ((returns - values[:-1]) / norm).detach()
     loss_actor = -(w * (objective + entropy_coef * entropy)).mean()
     target = returns.detach()
     loss_critic = (w * (agent.twohot.loss(logits, target) + agent.twohot.loss(logits, slow_target))).mean()

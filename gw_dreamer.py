@@ -685,7 +685,7 @@ def actor_critic_loss(agent, dream: Dream, start_w, *, gamma=1 - 1 / 333, lam=0.
         conts = dream.conts
         w = torch.cumprod(torch.cat([torch.ones_like(conts[:1]), conts[:-1]]), 0) * start_w
         scale = agent.return_scale.update(returns)
-        adv = (returns - values[:-1]) / scale.clamp(min=1.0)
+        adv = (returns - values[:-1]) / scale.clamp(min=1.0).to(returns.dtype)  # float64 state, float32 math
         slow_target = twohot.mean(agent.slow_critic(dream.feats[:-1]))
     logp, entropy = agent.actor.log_prob(dream.feats[:-1], dream.actions)
     loss_actor = -(w * (logp * adv + entropy_coef * entropy)).mean()

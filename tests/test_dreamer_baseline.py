@@ -297,6 +297,7 @@ def test_imagination_gradients_follow_the_actor_gradient_mode(pretrained):
     assert feats.shape == (5, 6, 64 + 128) and actions.shape == (4, 6, 5) and not feats.requires_grad
     dream = D.imagine(agent, deter, stoch, 4, grad=True)
     loss_actor, loss_critic, _ = D.actor_critic_loss(agent, dream, torch.ones(6), dynamics=True)
+    assert loss_actor.dtype == loss_critic.dtype == torch.float32  # the float64 return scale stays apart
     # Dynamics backpropagation: the actor's loss reaches its weights through the imagined transitions.
     first_layer = agent.actor.net[0][0].weight
     (g_actor,) = torch.autograd.grad(loss_actor, [first_layer], retain_graph=True)

@@ -251,6 +251,7 @@ def test_imagination_shapes_and_stop_gradients():
     assert torch.equal(hs[0], h0) and not hs.requires_grad and torch.all(acts.sum(-1) == 1)
     assert torch.all((conts >= 0) & (conts <= 1))
     loss_a, loss_c, _ = G.actor_critic_loss(agent, dream, torch.ones(6), gamma=args.gamma, lam=args.lam)
+    assert loss_a.dtype == loss_c.dtype == torch.float32  # the float64 return scale does not promote the math
     (loss_a + loss_c).backward()
     assert all(p.grad is None for p in agent.wm.parameters())  # AC gradients stop at the world model
     assert all(p.grad is not None for p in agent.actor.parameters())
