@@ -821,11 +821,12 @@ def dream_loss(agent: Agent, h0: torch.Tensor, z0: torch.Tensor, start_w: torch.
 EAGER = {"gw": gw_loss, "wm": world_model_loss, "ac": dream_loss}  # the loss computations of an update
 
 
-def compiled_losses(device) -> dict:
+def compiled_losses(device, backend: str = "inductor") -> dict:
     """--compile: both loss computations through torch.compile, with CUDA graphs on a GPU. The optimizer
-    steps stay eager; nothing in the compiled parts reads a value back to the host."""
+    steps stay eager; nothing in the compiled parts reads a value back to the host. (``backend``: the
+    tests also use "aot_eager", the same graphs without generated kernels.)"""
     mode = "reduce-overhead" if str(device).startswith("cuda") else None
-    return {k: torch.compile(fn, mode=mode) for k, fn in EAGER.items()}
+    return {k: torch.compile(fn, mode=mode, backend=backend) for k, fn in EAGER.items()}
 
 
 def gw_update(

@@ -42,6 +42,10 @@ class Args:
     """timed updates of each, after one warm-up update"""
     threads: int = 0
     """torch CPU threads (0: torch's default)"""
+    match_parameters: bool = True
+    """give SheepRL's model the recurrent state size (a multiple of 64) whose trainable parameters come
+    closest to ours (its GRU is dense, ours DreamerV3's block-diagonal one, so the same sizes give it more
+    weights); --no-match-parameters keeps our sizes as they are"""
 
 
 def ours(env: str, size: str, a: Args):
@@ -63,8 +67,9 @@ def ours(env: str, size: str, a: Args):
     return (lambda: D.train_update(agent, opts, replay, args)), agent.n_trainable()["total"], args
 
 
-def theirs(env: str, args: D.Args, a: Args):
-    """(one update, trainable parameters) of SheepRL's DreamerV3 at the sizes of ``args``."""
+def theirs(env: str, args: D.Args, a: Args, deter: int | None = None, build_only: bool = False):
+    """(one update, trainable parameters) of SheepRL's DreamerV3 at the sizes of ``args`` (its recurrent
+    state ``deter`` if given)."""
     import gymnasium as gym
     import hydra
     from hydra import compose, initialize_config_module
@@ -89,7 +94,7 @@ def theirs(env: str, args: D.Args, a: Args):
         f"algo.world_model.discrete_size={args.classes}",
         f"algo.world_model.stochastic_size={D.STOCH}",
         f"algo.world_model.encoder.cnn_channels_multiplier={args.cnn_depth}",
-        f"algo.world_model.recurrent_model.recurrent_state_size={args.deter}",
+        f"algo.world_model.recurrent_model.recurrent_state_size={deter or args.deter}",
         f"algo.world_model.transition_model.hidden_size={args.hidden}",
         f"algo.world_model.representation_model.hidden_size={args.hidden}",
         "fabric.accelerator=cpu",
@@ -111,6 +116,9 @@ def theirs(env: str, args: D.Args, a: Args):
     world_model, actor, critic, target_critic, _ = build_agent(
         fabric, actions_dim, continuous, cfg, obs_space
     )
+    n = sum(p.numel() for mod in (world_model, actor, critic) for p in mod.parameters() if p.requires_grad)
+    if build_only:
+        return None, n
     opt = [
         hydra.utils.instantiate(c.optimizer, params=m.parameters(), _convert_="all")
         for c, m in ((cfg.algo.world_model, world_model), (cfg.algo.actor, actor), (cfg.algo.critic, critic))
@@ -129,7 +137,6 @@ def theirs(env: str, args: D.Args, a: Args):
         "truncated": torch.zeros(T, B, 1),
         "is_first": torch.zeros(T, B, 1),
     }
-    n = sum(p.numel() for mod in (world_model, actor, critic) for p in mod.parameters() if p.requires_grad)
 
     def update():
         batch = {k: v.clone() for k, v in data.items()}
@@ -166,11 +173,16 @@ if __name__ == "__main__":
     env, size = a.setting.split(":")
     torch.manual_seed(0)
     our_update, our_n, args = ours(env, size, a)
-    their_update, their_n = theirs(env, args, a)
+    deter = args.deter
+    if a.match_parameters:  # the recurrent state size whose parameter count is closest to ours
+        sizes = range(64, 2 * args.deter + 1, 64)
+        deter = min(sizes, key=lambda d: abs(theirs(env, args, a, d, build_only=True)[1] - our_n))
+    their_update, their_n = theirs(env, args, a, deter)
     import sheeprl
 
     print(f"torch {torch.__version__}, sheeprl {sheeprl.__version__}, {torch.get_num_threads()} threads, CPU")
     print(f"{env} {size}: batch {a.batch_size} x {a.batch_length}, horizon {args.imag_horizon}")
+    print(f"recurrent state: ours {args.deter} (8 blocks), SheepRL's {deter} (dense)")
     ours_f, theirs_f = D.count_flops(our_update)[1], D.count_flops(their_update)[1]
     ours_s, theirs_s = seconds(our_update, a.updates), seconds(their_update, a.updates)
     rows = (
