@@ -24,9 +24,11 @@ import pretrain_vae_gw as P  # noqa: E402
 class Args:
     workers: tuple[int, ...] = (1, 2)
     """worker counts to measure"""
-    samples: int = 2_000
-    """RoboDesk samples per measurement (a third per source: push_green expert, open_slide expert, random;
-    whole episodes are 500 samples)"""
+    samples: int = 3_000
+    """RoboDesk samples per measurement with fast rendering (a third per source: push_green expert,
+    open_slide expert, random; whole episodes are 500 samples)"""
+    faithful_samples: int = 1_000
+    """the same with faithful rendering (about 14 frames/s a core: an episode takes minutes)"""
     qualities: tuple[str, ...] = ("fast", "faithful")
     """RoboDesk render qualities"""
     shapes_samples: int = 60_000
@@ -50,5 +52,6 @@ if __name__ == "__main__":
     for q in a.qualities:
         for w in a.workers:
             kw = dict(env="robodesk", tasks=("push_green", "open_slide"), render_quality=q, workers=w)
-            sec = timed_collect(n_samples=a.samples, shard_size=a.samples, **kw)
-            print(f"robodesk {q:8s}         {w:3d} workers: {a.samples / sec:8.1f} samples/s", flush=True)
+            n = a.samples if q == "fast" else a.faithful_samples
+            sec = timed_collect(n_samples=n, shard_size=n, **kw)
+            print(f"robodesk {q:8s} {n:6,d}  {w:3d} workers: {n / sec:8.1f} samples/s", flush=True)
