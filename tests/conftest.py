@@ -8,11 +8,15 @@ import subprocess
 import sys
 from pathlib import Path
 
-import numpy as np
-import pytest
-import torch
-
 os.environ.setdefault("MUJOCO_GL", "egl")  # before anything imports mujoco
+# One thread per test process, for it and the scripts it starts: the suite runs in two processes
+# (pytest -n 2) on two cores, and two 2-thread torch processes side by side run slower than with one.
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+import torch  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))  # the repository root (envs/, scripts)
 

@@ -95,12 +95,12 @@ def test_eval_only_with_each_drop(ss_runs, pretrained):
     more = ["--checkpoint-dir", str(tmp / "ck"), *"--eval-only --drop vision --eval-episodes 3".split()]
     log = run_script("ppo_variants.py", tmp, "--variant", "clip", *more)
     assert "drop=vision: return" in log and "3 episodes" in log
-    for variant in ("raw", "vae"):
-        for drop in ("none", "vision", "attr"):
-            args = PPO.Args(variant=variant, checkpoint_dir=str(tmp / "ck"), eval_only=True, drop=drop)
-            args.eval_episodes = 2
-            out = PPO.main(args)
-            assert out["drop"] == drop and math.isfinite(out["return_mean"])
+    # each drop once, on the two other variants (what each drop feeds the policy: the test below)
+    for variant, drop in (("raw", "none"), ("raw", "attr"), ("vae", "vision")):
+        args = PPO.Args(variant=variant, checkpoint_dir=str(tmp / "ck"), eval_only=True, drop=drop)
+        args.eval_episodes = 2
+        out = PPO.main(args)
+        assert out["drop"] == drop and math.isfinite(out["return_mean"])
 
 
 def test_a_removed_modality_no_longer_reaches_the_policy(pretrained):

@@ -19,6 +19,11 @@ from torch.utils.tensorboard import SummaryWriter
 import pretrain_vae_gw as P
 
 FEW = ["--vae-steps", "1", "--gw-steps", "2"]  # a few updates: float noise has not grown yet
+# Worst tensor's relative difference from the one-process weights, measured on this test's run: 1.4e-4
+# as it should be (Adam's first steps move a weight whose gradient is all but 0 by a full learning rate,
+# with the sign float noise gives it: gw.e.attr.8.weight), 8e-3 without the gathered contrastive term,
+# 1.0 without the global batch norm. The bound sits between, a factor of 7 from each.
+REL = 1e-3
 
 
 def torchrun(cwd: Path, *args: str) -> str:
@@ -68,7 +73,7 @@ def test_two_processes_train_what_one_process_trains(tmp_path):
     log = torchrun(tmp_path, "--env", "simple_shapes", "--stages", "vae", "gw", *data, *TINY_PRETRAIN, *FEW)
     assert log.count("[vae] wrote") == 1 and log.count("[gw] wrote") == 1  # one process saves
     assert len(set((tmp_path / "runs").iterdir()) - runs_before) == 1  # one TensorBoard folder
-    assert_same_weights(weights(tmp_path / "ck"), weights(tmp_path / "ck2"), rel=1e-4)
+    assert_same_weights(weights(tmp_path / "ck"), weights(tmp_path / "ck2"), rel=REL)
 
 
 def test_an_interrupted_stage_continues_under_torchrun_as_in_one_process(tmp_path, monkeypatch):
@@ -97,7 +102,7 @@ def test_an_interrupted_stage_continues_under_torchrun_as_in_one_process(tmp_pat
     assert "continuing the unfinished stage" in one and "continuing the unfinished stage" in two
     a = torch.load(ck / "vae.pt", weights_only=False)["vae_v"]
     b = torch.load(tmp_path / "ck2" / "simple_shapes" / "vae.pt", weights_only=False)["vae_v"]
-    assert_same_weights(a, b, rel=1e-4)
+    assert_same_weights(a, b, rel=REL)
 
 
 def test_collect_and_batches_that_do_not_split_are_refused_under_torchrun(tmp_path):
