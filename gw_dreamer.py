@@ -65,6 +65,10 @@ class Args:
     """run the update's losses through torch.compile (on a GPU with CUDA graphs, mode "reduce-overhead");
     compiling takes minutes at start, and a non-finite loss is then caught at the next log line or save
     rather than at once (docs/gw_dreamer.md, "Speed and compute")"""
+    cpu_preset: bool = False
+    """RoboDesk at a scale that trains on a 2-core CPU: the same algorithm with a smaller world model and
+    actor-critic and a smaller batch (CPU_SIZES, CPU_TABLE; docs/gw_dreamer.md). Simple Shapes runs at
+    the paper's sizes on a CPU already: there the preset changes nothing"""
 
     # frozen representations (pretrain_vae_gw.py)
     checkpoint_dir: str = "checkpoints"
@@ -129,8 +133,9 @@ class Args:
     """EMA decay of the return scale max(1, P95 - P5) (DreamerV3)"""
 
     # environments
-    render_quality: Literal["faithful", "fast"] = "faithful"
-    """RoboDesk image quality (fast: CPU experiments only, docs/environments.md)"""
+    render_quality: Literal["faithful", "fast"] | None = None
+    """RoboDesk image quality; default: that of the images the GW was trained on (its data record), and
+    another one is refused (docs/environments.md)"""
     episode_length: int = 2000
     """RoboDesk episode length in physics-control repeats (paper: 2000, i.e. 500 agent steps)"""
 
@@ -139,8 +144,9 @@ class Args:
     """environment steps between evaluations (default 5,000 Simple Shapes, 50,000 RoboDesk)"""
     eval_episodes: int = 10
     """episodes per evaluation (and for --eval-only)"""
-    criterion: float = 0.75
-    """normalised return that defines the return criterion (Simple Shapes)"""
+    criterion: float | None = None
+    """normalised return that defines the return criterion (default 0.75 Simple Shapes, 0.70 RoboDesk:
+    the paper's 70%)"""
     smoothing: int = 10
     """training episodes in the sliding window of the smoothed return (paper: 10)"""
     stop_at_criterion: bool = False
@@ -152,6 +158,9 @@ class Args:
     """environment steps between TensorBoard scalars and progress lines"""
     save_every: int = 10_000
     """environment steps between resumable checkpoints"""
+    save_minutes: float = 15.0
+    """wall-clock minutes after which a resumable checkpoint is written even if --save-every steps have
+    not passed (a run stopped without warning loses at most this much)"""
     resume: bool = False
     """continue the run stored at --checkpoint (default: this run's agent checkpoint)"""
     overwrite: bool = False
@@ -166,7 +175,10 @@ class Args:
 
     def resolve(self) -> Args:
         """Fill the flags left at None with the table's value for --env."""
-        for name, value in TABLE[self.env].items():
+        if self.env == "simple_shapes" and self.render_quality is None:
+            self.render_quality = "faithful"  # not used: Simple Shapes has one renderer
+        table = TABLE[self.env] | (CPU_TABLE.get(self.env, {}) if self.cpu_preset else {})
+        for name, value in table.items():
             if getattr(self, name) is None:
                 setattr(self, name, value)
         return self
@@ -176,20 +188,75 @@ class Args:
 # step counts and evaluation intervals are the scale of the paper's Figure 3).
 TABLE = {
     "simple_shapes": dict(
-        total_steps=100_000, batch_size=64, batch_length=32, train_ratio=4.0, wm_lr=1e-3, eval_every=5_000
+        total_steps=100_000,
+        batch_size=64,
+        batch_length=32,
+        train_ratio=4.0,
+        wm_lr=1e-3,
+        eval_every=5_000,
+        criterion=0.75,
     ),
     "robodesk": dict(
-        total_steps=1_000_000, batch_size=32, batch_length=128, train_ratio=2.0, wm_lr=3e-4, eval_every=50_000
+        total_steps=1_000_000,
+        batch_size=32,
+        batch_length=128,
+        train_ratio=2.0,
+        wm_lr=3e-4,
+        eval_every=50_000,
+        criterion=0.70,
     ),
 }
+# --cpu-preset on RoboDesk: 200,000 frames in about 2.5 hours on one core (docs/gw_dreamer.md).
+CPU_TABLE = {"robodesk": dict(total_steps=200_000, batch_size=16, batch_length=64, eval_every=25_000)}
 TAG = "gw_dreamer"  # the prefix of every line this script prints
 # Network sizes of the appendix tables ("GRU architecture", "World Model heads", "Actor-Critic").
 SIZES = {
-    "simple_shapes": {"gru_in": 32, "gru_hidden": 64, "z_head": (), "ac_layers": 3, "actions": 7},
+    "simple_shapes": {
+        "gru_in": 32,
+        "gru_hidden": 64,
+        "z_head": (),
+        "ac_layers": 3,
+        "ac_width": 512,
+        "actions": 7,
+    },
     # The RoboDesk actor-critic table gives x in R^512 while the GRU table gives h in R^1024; the AC
     # reads h_t (text), so its input is 1024 and its 4 hidden layers are 512 wide as listed.
-    "robodesk": {"gru_in": 1024, "gru_hidden": 1024, "z_head": (512, 512), "ac_layers": 4, "actions": 5},
+    "robodesk": {
+        "gru_in": 1024,
+        "gru_hidden": 1024,
+        "z_head": (512, 512),
+        "ac_layers": 4,
+        "ac_width": 512,
+        "actions": 5,
+    },
 }
+# --cpu-preset: the same networks, a quarter as wide (the GRU state h_t of 256 instead of 1024).
+CPU_SIZES = {
+    "robodesk": {
+        "gru_in": 256,
+        "gru_hidden": 256,
+        "z_head": (256,),
+        "ac_layers": 3,
+        "ac_width": 256,
+        "actions": 5,
+    }
+}
+
+
+# One update at the paper's RoboDesk sizes on one CPU core next to another run, in seconds
+# (benchmarks/gw_dreamer_throughput.py); a run at those sizes on a CPU prints its estimated time.
+PAPER_SIZE_CPU_S = 4.9
+
+
+def dev_of(module: nn.Module) -> torch.device:
+    return next(module.parameters()).device
+
+
+def sizes_of(env: str, cpu_preset: bool = False) -> dict:
+    """The network sizes of a run: the appendix tables', or the CPU preset's."""
+    return CPU_SIZES[env] if cpu_preset and env in CPU_SIZES else SIZES[env]
+
+
 # Simulator frames per agent step. The paper counts RoboDesk "environment steps" in frames ("2,000
 # environment steps but with an action repetition of 4 steps, leading to 500 chosen actions"), so step
 # counts (--total-steps, criteria, logs) are frames there; Simple Shapes has no action repeat.
@@ -303,6 +370,8 @@ class FrozenEncoder(nn.Module):
         # RoboDesk tasks whose expert data the GW was trained on (the others are zero-shot for it).
         labels = gw.get("data", {}).get("samples_per_source_and_task", {})
         self.expert_tasks = sorted(k.split("/", 1)[1] for k in labels if k.startswith("expert/"))
+        # RoboDesk: the image quality of the GW's training data (agents must see the same images).
+        self.render_quality = gw.get("args", {}).get("render_quality", "faithful")
         self.z_dim = s["z"]
         self.eval().requires_grad_(False)
 
@@ -386,9 +455,9 @@ class WorldModel(nn.Module):
     """h_{t+1} = GRU(h_t, in([z_t, a_t])); z_{t+1} = tanh-head(h_{t+1}); reward and done heads read
     [h_{t+1}, z_{t+1}] (the tables' inputs 74 = 64 + 10 and 1100 = 1024 + 76)."""
 
-    def __init__(self, env: str, z_dim: int, action_dim: int, reward_out: int):
+    def __init__(self, sizes: dict, z_dim: int, action_dim: int, reward_out: int):
         super().__init__()
-        s = SIZES[env]
+        s = sizes
         # A linear input layer brings [z, a] to the table's GRU input size (docs/paper_readings.md).
         self.inp = nn.Sequential(nn.Linear(z_dim + action_dim, s["gru_in"]), nn.ReLU())
         self.gru = nn.GRUCell(s["gru_in"], s["gru_hidden"])
@@ -434,10 +503,12 @@ class Actor(nn.Module):
     """Discrete: categorical with 1% uniform mix (DreamerV3). Continuous: Gaussian with tanh mean and
     std in [0.1, 1], the table's FC_{2x5}; samples are clipped to the action box."""
 
-    def __init__(self, hidden: int, n_actions: int, depth: int, discrete: bool, unimix: float = 0.01):
+    def __init__(
+        self, hidden: int, n_actions: int, depth: int, discrete: bool, width: int = 512, unimix: float = 0.01
+    ):
         super().__init__()
         self.discrete, self.n, self.unimix = discrete, n_actions, unimix
-        self.net = mlp(hidden, 512, n_actions if discrete else 2 * n_actions, depth)
+        self.net = mlp(hidden, width, n_actions if discrete else 2 * n_actions, depth)
 
     def dist(self, h: torch.Tensor) -> torch.distributions.Distribution:
         out = self.net(h)
@@ -462,9 +533,9 @@ class Actor(nn.Module):
 
 
 class Critic(nn.Module):
-    def __init__(self, hidden: int, depth: int, n_bins: int = 255):
+    def __init__(self, hidden: int, depth: int, width: int = 512, n_bins: int = 255):
         super().__init__()
-        self.net = mlp(hidden, 512, n_bins, depth)
+        self.net = mlp(hidden, width, n_bins, depth)
 
     def forward(self, h: torch.Tensor) -> torch.Tensor:
         return self.net(h)
@@ -495,22 +566,29 @@ class ReturnScale(nn.Module):
 class Agent(nn.Module):
     """The trainable part of GW-Dreamer: world model, actor, critic, the slow critic and the return scale."""
 
-    def __init__(self, env: str, z_dim: int, reward_loss: str, return_norm_decay: float = 0.99):
+    def __init__(
+        self,
+        env: str,
+        z_dim: int,
+        reward_loss: str,
+        return_norm_decay: float = 0.99,
+        cpu_preset: bool = False,
+    ):
         super().__init__()
-        s = SIZES[env]
+        s = sizes_of(env, cpu_preset)
         self.discrete = env == "simple_shapes"
         self.twohot = TwoHot()
-        self.wm = WorldModel(env, z_dim, s["actions"], 255 if reward_loss == "twohot" else 1)
-        ac_in = self.feature_size(env, z_dim)
-        self.actor = Actor(ac_in, s["actions"], s["ac_layers"], self.discrete)
-        self.critic = Critic(ac_in, s["ac_layers"])
+        self.wm = WorldModel(s, z_dim, s["actions"], 255 if reward_loss == "twohot" else 1)
+        ac_in = self.feature_size(s, z_dim)
+        self.actor = Actor(ac_in, s["actions"], s["ac_layers"], self.discrete, s["ac_width"])
+        self.critic = Critic(ac_in, s["ac_layers"], s["ac_width"])
         self.reward_dec = RewardDecoder(reward_loss, self.twohot)
         self.slow_critic = copy.deepcopy(self.critic).requires_grad_(False)
         self.return_scale = ReturnScale(return_norm_decay)
 
     @staticmethod
-    def feature_size(env: str, z_dim: int) -> int:
-        return SIZES[env]["gru_hidden"]
+    def feature_size(sizes: dict, z_dim: int) -> int:
+        return sizes["gru_hidden"]
 
     def features(self, h: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         """What the actor and critic read: the GRU state h_t (the text; the tables' input sizes 64 and
@@ -892,14 +970,9 @@ ROBODESK_TASKS = "push_green open_slide open_drawer upright_block_off_table flat
 # The RoboDesk pipeline, at the CPU scale of docs/environments.md (times measured on a 2-core CPU) or at
 # the paper's scale (times of docs/pretrain_vae_gw.md: one CPU core collecting, one H100 training).
 ROBODESK_PIPELINE = """the RoboDesk agents read the frozen VAEs and GW of pretrain_vae_gw.py; make them first.
-  CPU scale (a GW that runs end to end, too small for control; docs/environments.md):
-    python pretrain_vae_gw.py --env robodesk --stages collect --n-samples 36000 --render-quality fast \\
-        --tasks {tasks}{cd}   # 12 min on 2 cores
-    python pretrain_vae_gw.py --env robodesk --stages vae gw --tasks {tasks}{cd} \\
-        --vae-width 64 --vae-steps 3000 --vae-batch-size 128 --vae-lr-v 1e-3 --vae-lr-attr 3e-3 \\
-        --vae-lr-start-end 1e-3 --beta-attr 0.005 --attr-updates-per-step 2 \\
-        --gw-steps 6000 --gw-batch-size 256 --gw-lr 1e-3 --gw-lr-start-end 1e-4   # 21 min on 2 cores
-    then this command with --render-quality fast
+  CPU scale (one GW for five tasks, fast images; docs/pretrain_vae_gw.md):
+    python pretrain_vae_gw.py --env robodesk --cpu-preset{cd}   # about 90 min on 2 cores
+    then this command with --cpu-preset
   paper scale (GPU): python pretrain_vae_gw.py --env robodesk --task {task}{cd}
     (2M samples: 11 h of collection on one core with --render-quality fast, 190 h faithful; then
     the visual VAE 30 h, the attribute VAE 35 min and the GW 1.5 h on one H100)"""
@@ -1092,8 +1165,8 @@ def gw_fingerprint(encoder: FrozenEncoder) -> float:
 # are); every other setting defines the run, and --resume refuses a change to any of them.
 MAY_CHANGE = set(
     "total_steps stop_at_criterion eval_every eval_episodes log_every save_every video_every device"
-    " torch_threads resume overwrite checkpoint checkpoint_dir gw_checkpoint vae_checkpoint exp_name"
-    " eval_only drop compile".split()
+    " save_minutes torch_threads resume overwrite checkpoint checkpoint_dir gw_checkpoint vae_checkpoint"
+    " exp_name eval_only drop compile".split()
 )
 # Settings an evaluation must share with the agent it loads (they shape its networks or inputs).
 EVAL_KEYS = ("task", "reward_loss")
@@ -1222,8 +1295,9 @@ class Run:
     agent_path: Path
     pretrained: dict  # {"vae.pt": path, "gw.pt": path}
     model: str  # "gw" (GW-Dreamer) or "clip" (CLIP-Dreamer)
-    ref: tuple | None  # Simple Shapes returns of the random and the greedy policy (normalisation)
+    ref: tuple | None  # returns of the random and the scripted policy (normalisation)
     t0: float = field(default_factory=time.time)
+    last_save: float = field(default_factory=time.time)
     steps0: int = 0
 
     def normalise(self, ret: float) -> float:
@@ -1235,7 +1309,31 @@ def load_frozen(args: Args, dev) -> tuple[FrozenEncoder, dict]:
     wanted = {"vae.pt": args.vae_checkpoint, "gw.pt": args.gw_checkpoint}
     paths = pretrained_paths(args.checkpoint_dir, args.env, wanted)
     encoder = load_encoder(args.env, paths["vae.pt"], paths["gw.pt"], args.checkpoint_dir, args.task)
+    if args.env == "robodesk":  # the images the GW was trained on, or a clear refusal
+        if args.render_quality is None:
+            args.render_quality = encoder.render_quality
+        elif args.render_quality != encoder.render_quality:
+            raise UsageError(
+                f"--render-quality {args.render_quality}: the GW in {paths['gw.pt']} was trained on "
+                f"{encoder.render_quality} images, and its encoders have never seen the other kind; leave "
+                f"the flag out, or pre-train a GW on {args.render_quality} images"
+            )
     return encoder.to(dev), paths
+
+
+def reference_returns(args: Args) -> tuple[float, float] | None:
+    """The returns that normalise this run's: 0 for a uniformly random policy, 1 for the scripted policy
+    (Simple Shapes: greedy; RoboDesk: the task's expert, measured once and cached beside the
+    checkpoints). None for a RoboDesk task without a scripted expert."""
+    if args.env == "simple_shapes":
+        return ss_reference_returns()
+    from envs.robodesk_experts import EXPERTS
+    from envs.robodesk_experts import reference_returns as rd_reference_returns
+
+    if args.task not in EXPERTS:
+        return None
+    cache = Path(args.checkpoint_dir) / "robodesk" / "reference_returns.json"
+    return rd_reference_returns(args.task, args.episode_length, cache=cache)
 
 
 def run_name(args: Args, model: str) -> str:
@@ -1271,7 +1369,7 @@ def start_run(args: Args, encoder: FrozenEncoder, agent: Agent, paths: dict, age
     if not args.resume:
         table = "\n".join(f"|{k}|{v}|" for k, v in vars(args).items())
         writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + table)
-    ref = ss_reference_returns() if args.env == "simple_shapes" else None
+    ref = reference_returns(args)
     run = Run(args, encoder, agent, opts, replay, state, writer, agent_path, paths, model, ref)
     run.steps0 = state.env_steps
     n = {k: sum(p.numel() for p in getattr(agent, k).parameters()) for k in ("wm", "actor", "critic")}
@@ -1289,7 +1387,17 @@ def start_run(args: Args, encoder: FrozenEncoder, agent: Agent, paths: dict, age
             f"(and random data): {args.task} is {'a task it saw' if seen else 'zero-shot for it'}"
         )
     if ref:
-        print(f"[{TAG}] normalised return: random policy {ref[0]:.1f} -> 0, greedy policy {ref[1]:.1f} -> 1")
+        scripted = "greedy policy" if args.env == "simple_shapes" else f"scripted {args.task} expert"
+        print(f"[{TAG}] normalised return: random policy {ref[0]:.1f} -> 0, {scripted} {ref[1]:.1f} -> 1")
+    else:
+        print(f"[{TAG}] {args.task} has no scripted expert: returns are not normalised, no criterion")
+    if args.env == "robodesk" and not args.cpu_preset and str(dev_of(agent)) == "cpu":
+        hours = updates_due(args.total_steps, args) * PAPER_SIZE_CPU_S / 3600
+        print(
+            f"[{TAG}] the paper's sizes on a CPU: about {PAPER_SIZE_CPU_S} s per update on one core, so "
+            f"{args.total_steps:,} frames take about {hours:.0f} h; --cpu-preset trains 200,000 frames in "
+            "about 2.5 h (docs/gw_dreamer.md)"
+        )
     return run
 
 
@@ -1302,6 +1410,7 @@ def save(run: Run) -> None:
         raise FloatingPointError(
             f"non-finite weights at env step {step:,}; the last good checkpoint is {run.agent_path}"
         )
+    run.last_save = time.time()
     atomic_save(
         {
             "kind": "gw_dreamer",
@@ -1330,6 +1439,7 @@ def log_episode(run: Run, ret: float, success: float) -> None:
     run.writer.add_scalar("charts/episodic_return", ret, step)
     if a.env == "robodesk":
         run.writer.add_scalar("charts/success_count", success, step)
+    if not run.ref:
         return
     s.recent = (s.recent + [run.normalise(ret)])[-a.smoothing :]
     smooth = float(np.mean(s.recent))
@@ -1382,8 +1492,8 @@ def bookkeeping(run: Run, logs: dict) -> None:
         s.next_video += a.video_every or a.total_steps
         strip = dream_filmstrip(run.agent, run.frozen, a, 16, seed=10**6)
         w.add_image("dreams/real_top_imagined_bottom", strip, step, dataformats="HWC")
-    if step >= s.next_save:
-        s.next_save += a.save_every
+    if step >= s.next_save or time.time() - run.last_save >= 60 * a.save_minutes:
+        s.next_save += a.save_every if step >= s.next_save else 0
         save(run)
 
 
@@ -1425,9 +1535,9 @@ def evaluate_checkpoint(agent: Agent, encoder: FrozenEncoder, args: Args, path: 
     sem = rets.std(ddof=1) / math.sqrt(len(rets)) if len(rets) > 1 else 0.0
     out = {"drop": args.drop, "return_mean": float(rets.mean()), "return_sem": float(sem)}
     line = f"[eval] drop={args.drop}: return {rets.mean():.2f} ± {sem:.2f} (s.e.m., {len(rets)} episodes)"
-    if args.env == "simple_shapes":
-        lo, hi = ss_reference_returns()
-        out["normalised_return"] = (out["return_mean"] - lo) / (hi - lo)
+    ref = reference_returns(args)
+    if ref:
+        out["normalised_return"] = (out["return_mean"] - ref[0]) / (ref[1] - ref[0])
         line += f", normalised {out['normalised_return']:.3f}"
     if args.env == "robodesk":
         out["success_count"] = float(succ.mean())
@@ -1470,7 +1580,7 @@ def main(args: Args) -> dict:
     random.seed(args.seed)
     np.random.seed(args.seed)
     torch.manual_seed(args.seed)
-    agent = Agent(args.env, encoder.z_dim, args.reward_loss, args.return_norm_decay).to(dev)
+    agent = Agent(args.env, encoder.z_dim, args.reward_loss, args.return_norm_decay, args.cpu_preset).to(dev)
     model = "gw" if encoder.preset == "gw" else "clip"
     default = Path(args.checkpoint_dir) / args.env / "agents" / f"{run_name(args, model)}.pt"
     agent_path = Path(args.checkpoint) if args.checkpoint else default

@@ -66,8 +66,8 @@ class Args:
     graphs, mode "reduce-overhead"); compiling takes minutes at start, and a non-finite loss is then caught
     at the next log line or save rather than at once (docs/gw_dreamer_e2e.md)"""
     cpu_preset: bool = False
-    """Simple Shapes on a 2-core CPU: GW updates on 256 replayed observations instead of 2,048 (see
-    CPU_PRESET); flags given explicitly win"""
+    """a 2-core CPU: GW updates on 256 replayed observations instead of 2,048 (see CPU_PRESET); on
+    RoboDesk also gw_dreamer.py's CPU sizes and batch (CPU_SIZES, CPU_TABLE); flags given explicitly win"""
 
     # frozen VAEs (pretrain_vae_gw.py --stages collect vae)
     checkpoint_dir: str = "checkpoints"
@@ -191,13 +191,12 @@ class Args:
     def resolve(self) -> Args:
         """The CPU preset (if asked) for every flag left at its default, then the tables' values for --env."""
         if self.cpu_preset:
-            if self.env != "simple_shapes":
-                raise UsageError("--cpu-preset is for Simple Shapes; RoboDesk at paper scale needs a GPU")
             plain = Args(env=self.env)
             for name, value in CPU_PRESET.items():
                 if getattr(self, name) == getattr(plain, name):  # flags given explicitly win
                     setattr(self, name, value)
-        for name, value in TABLE[self.env].items():
+        table = TABLE[self.env] | (CPU_TABLE.get(self.env, {}) if self.cpu_preset else {})
+        for name, value in table.items():
             if getattr(self, name) is None:
                 setattr(self, name, value)
         if self.gw_batch_size is None:
@@ -239,13 +238,47 @@ TABLE = {
 # A smaller GW batch for a 2-core CPU: the contrastive loss compares every pair of a batch, so a GW
 # update costs ~15x more at 2,048 than at 256 (the paper gives no batch for the end-to-end GW).
 CPU_PRESET = {"gw_batch_size": 256}
+# RoboDesk under --cpu-preset: gw_dreamer.py's CPU batch (and its CPU_SIZES networks).
+CPU_TABLE = {"robodesk": dict(total_steps=200_000, batch_size=16, batch_length=64, eval_every=25_000)}
 TAG = "gw_dreamer_e2e"  # the prefix of every line this script prints
 SIZES = {
-    "simple_shapes": {"gru_in": 32, "gru_hidden": 64, "z_head": (), "ac_layers": 3, "actions": 7},
+    "simple_shapes": {
+        "gru_in": 32,
+        "gru_hidden": 64,
+        "z_head": (),
+        "ac_layers": 3,
+        "ac_width": 512,
+        "actions": 7,
+    },
     # The RoboDesk actor-critic table gives x in R^512 while the GRU table gives h in R^1024; the AC
     # reads h_t (text), so its input is 1024 and its 4 hidden layers are 512 wide as listed.
-    "robodesk": {"gru_in": 1024, "gru_hidden": 1024, "z_head": (512, 512), "ac_layers": 4, "actions": 5},
+    "robodesk": {
+        "gru_in": 1024,
+        "gru_hidden": 1024,
+        "z_head": (512, 512),
+        "ac_layers": 4,
+        "ac_width": 512,
+        "actions": 5,
+    },
 }
+# --cpu-preset: the same networks, a quarter as wide (the GRU state h_t of 256 instead of 1024).
+CPU_SIZES = {
+    "robodesk": {
+        "gru_in": 256,
+        "gru_hidden": 256,
+        "z_head": (256,),
+        "ac_layers": 3,
+        "ac_width": 256,
+        "actions": 5,
+    }
+}
+
+
+def sizes_of(env: str, cpu_preset: bool = False) -> dict:
+    """The network sizes of a run: the appendix tables', or the CPU preset's."""
+    return CPU_SIZES[env] if cpu_preset and env in CPU_SIZES else SIZES[env]
+
+
 ACTION_REPEAT = {"simple_shapes": 1, "robodesk": 4}
 ENV_SPECS = {  # must agree with pretrain_vae_gw.py (checked against the checkpoints)
     "simple_shapes": {"image": 32, "attr": 11, "latent": 10, "z": 10, "gw_hidden": 64},
@@ -475,9 +508,9 @@ class WorldModel(nn.Module):
     """h_{t+1} = GRU(h_t, in([z_t, a_t])); z_{t+1} = tanh-head(h_{t+1}); reward and done heads read
     [h_{t+1}, z_{t+1}] (the tables' inputs 74 = 64 + 10 and 1100 = 1024 + 76)."""
 
-    def __init__(self, env: str, z_dim: int, action_dim: int, reward_out: int):
+    def __init__(self, sizes: dict, z_dim: int, action_dim: int, reward_out: int):
         super().__init__()
-        s = SIZES[env]
+        s = sizes
         # A linear input layer brings [z, a] to the table's GRU input size (docs/paper_readings.md).
         self.inp = nn.Sequential(nn.Linear(z_dim + action_dim, s["gru_in"]), nn.ReLU())
         self.gru = nn.GRUCell(s["gru_in"], s["gru_hidden"])
@@ -523,10 +556,12 @@ class Actor(nn.Module):
     """Discrete: categorical with 1% uniform mix (DreamerV3). Continuous: Gaussian with tanh mean and
     std in [0.1, 1], the table's FC_{2x5}; samples are clipped to the action box."""
 
-    def __init__(self, hidden: int, n_actions: int, depth: int, discrete: bool, unimix: float = 0.01):
+    def __init__(
+        self, hidden: int, n_actions: int, depth: int, discrete: bool, width: int = 512, unimix: float = 0.01
+    ):
         super().__init__()
         self.discrete, self.n, self.unimix = discrete, n_actions, unimix
-        self.net = mlp(hidden, 512, n_actions if discrete else 2 * n_actions, depth)
+        self.net = mlp(hidden, width, n_actions if discrete else 2 * n_actions, depth)
 
     def dist(self, h: torch.Tensor) -> torch.distributions.Distribution:
         out = self.net(h)
@@ -551,9 +586,9 @@ class Actor(nn.Module):
 
 
 class Critic(nn.Module):
-    def __init__(self, hidden: int, depth: int, n_bins: int = 255):
+    def __init__(self, hidden: int, depth: int, width: int = 512, n_bins: int = 255):
         super().__init__()
-        self.net = mlp(hidden, 512, n_bins, depth)
+        self.net = mlp(hidden, width, n_bins, depth)
 
     def forward(self, h: torch.Tensor) -> torch.Tensor:
         return self.net(h)
@@ -585,16 +620,16 @@ class Agent(nn.Module):
     """The trainable part of GW-Dreamer end to end: Global Workspace, world model, actor, critic, the slow
     critic and the return scale."""
 
-    def __init__(self, env: str, reward_loss: str, return_norm_decay: float = 0.99):
+    def __init__(self, env: str, reward_loss: str, return_norm_decay: float = 0.99, cpu_preset: bool = False):
         super().__init__()
-        s, spec = SIZES[env], ENV_SPECS[env]
+        s, spec = sizes_of(env, cpu_preset), ENV_SPECS[env]
         z_dim = spec["z"]
         self.discrete = env == "simple_shapes"
         self.gw = GlobalWorkspace(spec["latent"], z_dim, spec["gw_hidden"])
         self.twohot = TwoHot()
-        self.wm = WorldModel(env, z_dim, s["actions"], 255 if reward_loss == "twohot" else 1)
-        self.actor = Actor(s["gru_hidden"], s["actions"], s["ac_layers"], self.discrete)
-        self.critic = Critic(s["gru_hidden"], s["ac_layers"])
+        self.wm = WorldModel(s, z_dim, s["actions"], 255 if reward_loss == "twohot" else 1)
+        self.actor = Actor(s["gru_hidden"], s["actions"], s["ac_layers"], self.discrete, s["ac_width"])
+        self.critic = Critic(s["gru_hidden"], s["ac_layers"], s["ac_width"])
         self.slow_critic = copy.deepcopy(self.critic).requires_grad_(False)
         self.reward_dec = RewardDecoder(reward_loss, self.twohot)
         self.return_scale = ReturnScale(return_norm_decay)
@@ -1045,14 +1080,9 @@ ROBODESK_TASKS = "push_green open_slide open_drawer upright_block_off_table flat
 # The RoboDesk pipeline, at the CPU scale of docs/environments.md (times measured on a 2-core CPU) or at
 # the paper's scale (times of docs/pretrain_vae_gw.md: one CPU core collecting, one H100 training).
 ROBODESK_PIPELINE = """the RoboDesk agents read the frozen VAEs and GW of pretrain_vae_gw.py; make them first.
-  CPU scale (a GW that runs end to end, too small for control; docs/environments.md):
-    python pretrain_vae_gw.py --env robodesk --stages collect --n-samples 36000 --render-quality fast \\
-        --tasks {tasks}{cd}   # 12 min on 2 cores
-    python pretrain_vae_gw.py --env robodesk --stages vae gw --tasks {tasks}{cd} \\
-        --vae-width 64 --vae-steps 3000 --vae-batch-size 128 --vae-lr-v 1e-3 --vae-lr-attr 3e-3 \\
-        --vae-lr-start-end 1e-3 --beta-attr 0.005 --attr-updates-per-step 2 \\
-        --gw-steps 6000 --gw-batch-size 256 --gw-lr 1e-3 --gw-lr-start-end 1e-4   # 21 min on 2 cores
-    then this command with --render-quality fast
+  CPU scale (one GW for five tasks, fast images; docs/pretrain_vae_gw.md):
+    python pretrain_vae_gw.py --env robodesk --cpu-preset{cd}   # about 90 min on 2 cores
+    then this command with --cpu-preset
   paper scale (GPU): python pretrain_vae_gw.py --env robodesk --task {task}{cd}
     (2M samples: 11 h of collection on one core with --render-quality fast, 190 h faithful; then
     the visual VAE 30 h, the attribute VAE 35 min and the GW 1.5 h on one H100)"""
@@ -1468,6 +1498,7 @@ def log_episode(run: Run, ret: float, success: float) -> None:
     run.writer.add_scalar("charts/episodic_return", ret, step)
     if a.env == "robodesk":
         run.writer.add_scalar("charts/success_count", success, step)
+    if not run.ref:
         return
     s.recent = (s.recent + [run.normalise(ret)])[-a.smoothing :]
     smooth = float(np.mean(s.recent))
@@ -1609,7 +1640,7 @@ def main(args: Args) -> dict:
     random.seed(args.seed)
     np.random.seed(args.seed)
     torch.manual_seed(args.seed)
-    agent = Agent(args.env, args.reward_loss, args.return_norm_decay).to(dev)
+    agent = Agent(args.env, args.reward_loss, args.return_norm_decay, args.cpu_preset).to(dev)
     model = "gw" if args.loss_preset == "gw" else "clip"
     default = Path(args.checkpoint_dir) / args.env / "agents" / f"{run_name(args, model)}.pt"
     agent_path = Path(args.checkpoint) if args.checkpoint else default

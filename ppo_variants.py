@@ -423,14 +423,9 @@ ROBODESK_TASKS = "push_green open_slide open_drawer upright_block_off_table flat
 # The RoboDesk pipeline, at the CPU scale of docs/environments.md (times measured on a 2-core CPU) or at
 # the paper's scale (times of docs/pretrain_vae_gw.md: one CPU core collecting, one H100 training).
 ROBODESK_PIPELINE = """the RoboDesk agents read the frozen VAEs and GW of pretrain_vae_gw.py; make them first.
-  CPU scale (a GW that runs end to end, too small for control; docs/environments.md):
-    python pretrain_vae_gw.py --env robodesk --stages collect --n-samples 36000 --render-quality fast \\
-        --tasks {tasks}{cd}   # 12 min on 2 cores
-    python pretrain_vae_gw.py --env robodesk --stages vae gw --tasks {tasks}{cd} \\
-        --vae-width 64 --vae-steps 3000 --vae-batch-size 128 --vae-lr-v 1e-3 --vae-lr-attr 3e-3 \\
-        --vae-lr-start-end 1e-3 --beta-attr 0.005 --attr-updates-per-step 2 \\
-        --gw-steps 6000 --gw-batch-size 256 --gw-lr 1e-3 --gw-lr-start-end 1e-4   # 21 min on 2 cores
-    then this command with --render-quality fast
+  CPU scale (one GW for five tasks, fast images; docs/pretrain_vae_gw.md):
+    python pretrain_vae_gw.py --env robodesk --cpu-preset{cd}   # about 90 min on 2 cores
+    then this command with --cpu-preset
   paper scale (GPU): python pretrain_vae_gw.py --env robodesk --task {task}{cd}
     (2M samples: 11 h of collection on one core with --render-quality fast, 190 h faithful; then
     the visual VAE 30 h, the attribute VAE 35 min and the GW 1.5 h on one H100)"""
@@ -938,6 +933,7 @@ def log_episode(run: Run, ret: float, success: float) -> None:
     run.writer.add_scalar("charts/episodic_return", ret, step)
     if a.env == "robodesk":
         run.writer.add_scalar("charts/success_count", success, step)
+    if not run.ref:
         return
     s.recent = (s.recent + [run.normalise(ret)])[-a.smoothing :]
     smooth = float(np.mean(s.recent))

@@ -82,9 +82,10 @@ class Args:
     device: str = "cuda" if torch.cuda.is_available() else "cpu"
     """torch device"""
     cpu_preset: bool = False
-    """small settings that give a usable Simple Shapes GW on a 2-core CPU in about 10 minutes
-    (60k samples; VAE width 64, 5,000 steps of batch 128, beta_attr 0.005 with 4 attribute updates
-    per step; 20,000 GW steps of batch 256); flags left at their paper default take the preset's value"""
+    """settings sized for a 2-core CPU (docs/pretrain_vae_gw.md, "Results at a CPU scale"): Simple Shapes
+    in about 10 minutes; RoboDesk one shared GW for the five scripted tasks (push_red and push_blue left
+    out, zero-shot) from fast images, in about 90 minutes; flags left at their default take the preset's
+    value"""
 
     # collect
     n_samples: int | None = None
@@ -186,7 +187,7 @@ class Args:
         self.resolve_tables()
         if self.cpu_preset:
             defaults = Args(env=self.env).resolve_tables()
-            for name, value in CPU_PRESET.items():
+            for name, value in CPU_PRESET[self.env].items():
                 if getattr(self, name) == getattr(defaults, name):  # flags given explicitly win
                     setattr(self, name, value)
         return self
@@ -197,7 +198,8 @@ class Args:
 # 20,000 GW steps (3 min here) rather than 60,000 (10 min): GW-Dreamer at --entropy-coef 3e-3 reached its
 # return criterion in 4 of 6 seeds on the shorter GW (4 of 5 on the longer), and the 7 minutes saved are
 # what let those seeds finish within the issue's 30 minutes, pre-training included (docs/experiments.md).
-CPU_PRESET = {
+CPU_PRESET = {}
+CPU_PRESET["simple_shapes"] = {
     "n_samples": 60_000,
     "vae_width": 64,
     "vae_steps": 5_000,
@@ -209,6 +211,27 @@ CPU_PRESET = {
     "attr_updates_per_step": 4,
     "gw_steps": 20_000,
     "gw_batch_size": 256,
+}
+# RoboDesk: the tasks with a scripted expert except push_red and push_blue (kept zero-shot), fast images
+# (a faithful one costs 0.35 s to render here), collected by 2 processes; the recipe's evidence is in
+# docs/pretrain_vae_gw.md ("RoboDesk at a CPU scale").
+CPU_PRESET["robodesk"] = {
+    "tasks": ("push_green", "open_slide", "open_drawer", "upright_block_off_table", "flat_block_in_bin"),
+    "n_samples": 90_000,
+    "render_quality": "fast",
+    "workers": 2,
+    "eval_size": 6_000,
+    "vae_width": 64,
+    "vae_steps": 6_000,
+    "vae_batch_size": 128,
+    "vae_lr_v": 1e-3,
+    "vae_lr_attr": 1e-3,
+    "vae_lr_start_end": 1e-4,
+    "beta_attr": 0.005,
+    "attr_updates_per_step": 2,
+    "gw_steps": 10_000,
+    "gw_batch_size": 256,
+    "gw_lr": 1e-3,
 }
 
 
@@ -766,6 +789,19 @@ def load_expert_policies(paths: tuple[str, ...], expert_tasks: list[str]) -> dic
     return out
 
 
+def robodesk_jobs(
+    blocks: list[tuple[str, str, int]], seed: int, steps: int
+) -> list[tuple[str, str, int, int]]:
+    """(source, task, samples, seed) of every episode of ``blocks``, ``steps`` samples per episode. The
+    blocks take turns (an episode of each task's expert, one random, then again), so that every shard,
+    and the held-out samples at the front of the data, hold every source."""
+    per_block = [
+        [(src, t, min(steps, n - e * steps), episode_seed(seed, b, e)) for e in range(math.ceil(n / steps))]
+        for b, (src, t, n) in enumerate(blocks)
+    ]
+    return [block[e] for e in range(max(map(len, per_block))) for block in per_block if e < len(block)]
+
+
 def episode_seed(seed: int, block: int, episode: int) -> int:
     """The seed of one collected episode (its reset, random actions and expert noise): episodes do not
     share a random stream, so any process can run any of them."""
@@ -821,11 +857,7 @@ def collect_robodesk(
             print(f"[collect] expert data of {t}: {who}")
     defaults = inspect.signature(RoboDeskEnv).parameters  # the env the episodes run in: the paper's
     steps = defaults["episode_length"].default // defaults["action_repeat"].default  # 500, no early end
-    jobs = [
-        (src, t, min(steps, n - e * steps), episode_seed(seed, b, e))
-        for b, (src, t, n) in enumerate(blocks)
-        for e in range(math.ceil(n / steps))
-    ]
+    jobs = robodesk_jobs(blocks, seed, steps)
     buf, pending = {"image": [], "attr": [], "source": [], "task": []}, 0  # episodes not yet in a shard
 
     def flush(force: bool) -> None:
@@ -997,7 +1029,7 @@ class Streamed:
             total, sq, count = total + a.sum(0), sq + (a * a).sum(0), count + len(a)
         mean = total / count
         std = np.sqrt(np.maximum(sq / count - mean**2, 0.0))
-        return mean.astype(np.float32), (std + 1e-6).astype(np.float32)
+        return mean.astype(np.float32), np.maximum(std, ATTR_STD_FLOOR).astype(np.float32)
 
     def chunks(self):
         for i in range(len(self.paths)):
@@ -1265,11 +1297,17 @@ def optimise(opt, sched, loss: torch.Tensor, where: str) -> None:
     sched.step()
 
 
+# RoboDesk attributes that barely move in the data (a button never pressed, the ball's height: stds of
+# 1e-6 to 1e-4) would become unit-variance noise if divided by their own std, and the attribute VAE would
+# spend latent dimensions on it; their scale is floored at 1 mm (or mrad, mm/s) instead.
+ATTR_STD_FLOOR = 1e-3
+
+
 def normaliser(attr: np.ndarray, env: str) -> tuple[np.ndarray, np.ndarray]:
-    """Simple Shapes attributes are already in [-1, 1]; RoboDesk's are standardised."""
+    """Simple Shapes attributes are already in [-1, 1]; RoboDesk's are standardised (std floored)."""
     if env == "simple_shapes":
         return np.zeros(attr.shape[1], np.float32), np.ones(attr.shape[1], np.float32)
-    return attr.mean(0).astype(np.float32), (attr.std(0) + 1e-6).astype(np.float32)
+    return attr.mean(0).astype(np.float32), np.maximum(attr.std(0), ATTR_STD_FLOOR).astype(np.float32)
 
 
 def train_vae(args: Args, writer: SummaryWriter, stop: StopRequest) -> None:
@@ -1615,6 +1653,12 @@ def evaluate_gw(args, gw, vae_v, vae_attr, vae_ckpt, images, attrs, u_v, u_a, n_
             figures["tr_image_to_attr_mse_standardised"] = float(
                 (((attr_hat - true_attr) / vae_ckpt["attr_std"]) ** 2).mean()
             )
+            every = torch.as_tensor(held_out, device=dev)
+            for mode, alpha_v in (("fused", 0.5), ("vision", 1.0), ("attr", 0.0)):
+                z = gw.fuse(u_v[every], u_a[every], alpha_v, 1 - alpha_v)
+                read = vae_attr.decode(gw.d["attr"](z)).cpu().numpy()
+                read = read * vae_ckpt["attr_std"] + vae_ckpt["attr_mean"]
+                figures |= robodesk_readout(read, attrs[held_out], mode)
         # Figure 2: incongruent pairs (attributes of another sample); decode z as an image per mode.
         k = ev[:8]
         perm = k.roll(1)
@@ -1626,7 +1670,53 @@ def evaluate_gw(args, gw, vae_v, vae_attr, vae_ckpt, images, attrs, u_v, u_a, n_
     for key, v in figures.items():
         writer.add_scalar(f"eval/{key}", v, 0)
     print("[gw] held-out evaluation: " + json.dumps({k: round(v, 4) for k, v in figures.items()}))
+    if args.env == "robodesk":
+        print(
+            f"[gw] what z holds, {len(held_out):,} held-out samples: R^2 (error in cm) of the decoded state"
+        )
+        print(f"[gw]   {'group':14s} {'fused':>16s} {'vision only':>16s} {'attributes only':>16s}")
+        for group in READOUT_GROUPS:
+            cells = []
+            for mode in ("fused", "vision", "attr"):
+                cm = figures.get(f"{mode}_{group}_error_cm")
+                cells.append(f"{figures[f'{mode}_{group}_r2']:.3f}" + (f" ({cm:.1f} cm)" if cm else ""))
+            print(f"[gw]   {group:14s} " + " ".join(f"{c:>16s}" for c in cells))
     return figures
+
+
+# The groups of RoboDesk's state that single images hold (attr indices, envs/robodesk.py: robot qpos 0-8,
+# qvel 9-17, end effector 18-20, object qpos 21-49: drawer, slide, the buttons red / green / blue, their
+# lights, then ball, upright block and flat block as position + quaternion; object qvel 50-75).
+READOUT_GROUPS = {
+    "end_effector": [18, 19, 20],
+    "gripper": [7, 8],
+    "button_red": [23, 26],
+    "button_green": [24, 27],
+    "button_blue": [25, 28],
+    "drawer": [21],
+    "slide": [22],
+    "ball": [29, 30, 31],
+    "upright_block": [36, 37, 38],
+    "flat_block": [43, 44, 45],
+}
+POSITIONS = ("end_effector", "ball", "upright_block", "flat_block")  # groups in metres: also an error in cm
+
+
+def robodesk_readout(read: np.ndarray, true: np.ndarray, mode: str) -> dict[str, float]:
+    """What z holds of each group of the state, from attributes decoded out of z (d_attr, then the
+    attribute VAE's decoder): R^2 per group (mean over its dimensions of 1 - SSE / SST on the held-out
+    samples; NaN for a group constant over them) and, for positions, the mean distance in cm. ``mode``
+    names the z (fused, vision, attr)."""
+    out = {}
+    for group, idx in READOUT_GROUPS.items():
+        y, y_hat = true[:, idx].astype(np.float64), read[:, idx].astype(np.float64)
+        sst = ((y - y.mean(0)) ** 2).sum(0)
+        varies = y.std(0) > 1e-3  # a dimension constant over the samples (< 1 mm or mrad) has no R^2
+        r2 = 1 - ((y - y_hat) ** 2).sum(0)[varies] / sst[varies]
+        out[f"{mode}_{group}_r2"] = float(r2.mean()) if varies.any() else float("nan")
+        if group in POSITIONS:
+            out[f"{mode}_{group}_error_cm"] = float(100 * np.linalg.norm(y - y_hat, axis=1).mean())
+    return out
 
 
 # --------------------------------------------------------------------------------------------------

@@ -38,6 +38,10 @@ class Args:
     """visual VAE widths for acting (1024: the paper's table; 64: pretrain_vae_gw.py --cpu-preset)"""
     render_quality: str = "fast"
     """RoboDesk image quality while acting"""
+    cpu_preset: bool = False
+    """measure gw_dreamer.py --cpu-preset (RoboDesk's CPU sizes and batch) instead of the paper's sizes"""
+    imag_from: tuple[str, ...] = ("last", "all")
+    """readings of where dreams start to measure"""
 
 
 def random_encoder(env: str, width: int) -> G.FrozenEncoder:
@@ -56,8 +60,9 @@ def random_encoder(env: str, width: int) -> G.FrozenEncoder:
 
 
 def time_updates(env: str, a: Args, **overrides) -> dict:
-    args = G.Args(env=env, **overrides).resolve()
-    agent = G.Agent(env, G.ENV_SPECS[env]["z"], args.reward_loss).to(a.device)
+    args = G.Args(env=env, cpu_preset=a.cpu_preset, **overrides).resolve()
+    agent = G.Agent(env, G.ENV_SPECS[env]["z"], args.reward_loss, cpu_preset=a.cpu_preset).to(a.device)
+    counts = {k: sum(p.numel() for p in getattr(agent, k).parameters()) for k in ("wm", "actor", "critic")}
     opts = G.make_optimizers(agent, args)
     n_act = G.SIZES[env]["actions"]
     replay = G.Replay(20_000, 1, G.ENV_SPECS[env]["z"], n_act, 0)
@@ -84,6 +89,7 @@ def time_updates(env: str, a: Args, **overrides) -> dict:
         "flops": flops,
         "env_steps_per_s": per_env_step,
         "args": args,
+        "params": counts,
     }
 
 
@@ -106,9 +112,9 @@ def flops_to_criterion(env: str, r: dict) -> str:
 
 
 def time_acting(env: str, width: int, a: Args) -> float:
-    args = G.Args(env=env, render_quality=a.render_quality).resolve()
+    args = G.Args(env=env, render_quality=a.render_quality, cpu_preset=a.cpu_preset).resolve()
     enc = random_encoder(env, width).to(a.device)
-    agent = G.Agent(env, enc.z_dim, args.reward_loss).to(a.device)
+    agent = G.Agent(env, enc.z_dim, args.reward_loss, cpu_preset=a.cpu_preset).to(a.device)
     envs = G.make_envs(args, 1)
     obs, _ = envs.reset(seed=0)
     h = torch.zeros(1, agent.wm.hidden, device=a.device)
@@ -134,7 +140,7 @@ if __name__ == "__main__":
             else f"simulator frames, {G.ACTION_REPEAT[env]} per agent step"
         )
         print(f"{env}: --total-steps and every step count are env steps ({unit})")
-        for imag_from in ("last", "all"):
+        for imag_from in a.imag_from:
             r = time_updates(env, a, imag_from=imag_from)
             print(
                 f"{env:13s} --imag-from {imag_from:4s}: {r['starts']:,} dreams per update, "
@@ -143,6 +149,12 @@ if __name__ == "__main__":
                 f"updates allow {r['env_steps_per_s']:.1f} env steps/s"
             )
             print(flops_to_criterion(env, r))
+            hours = G.updates_due(r["args"].total_steps, r["args"]) * r["s_per_update"] / 3600
+            print(
+                f"    parameters: world model {r['params']['wm']:,}, actor {r['params']['actor']:,}, critic "
+                f"{r['params']['critic']:,}; the updates of --total-steps {r['args'].total_steps:,} take "
+                f"{hours:.1f} h"
+            )
         for width in a.vae_widths:
             rate = time_acting(env, width, a) * G.ACTION_REPEAT[env]  # agent steps/s -> env steps/s
             print(f"{env:13s} acting, VAE width {width:4d}: {rate:.1f} env steps/s")

@@ -18,7 +18,10 @@ inverse kinematics does the rest), wrist held still.
 
 from __future__ import annotations
 
+import json
+import os
 from collections.abc import Callable
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -168,3 +171,43 @@ def _factory(task: str) -> Callable[..., WaypointExpert]:
 
 
 EXPERTS: dict[str, Callable[..., WaypointExpert]] = {task: _factory(task) for task in PLANS}
+
+
+def reference_returns(
+    task: str, episode_length: int = 2000, episodes: int = 10, seed: int = 10_000, cache: Path | None = None
+) -> tuple[float, float]:
+    """Mean dense returns of a uniformly random policy and of the task's scripted expert (no action noise)
+    over ``episodes`` episodes on seeds seed, seed + 1, ...: the 0 and the 1 of the normalised return
+    the agent scripts log on RoboDesk (docs/paper_readings.md). Rewards do not depend on images, so the
+    episodes run without rendering (about 20 s for both policies on one core). With ``cache`` (a JSON
+    file) the figures are read from it when it holds this task and these settings, else measured and
+    added to it."""
+    from envs.robodesk import RoboDeskEnv
+
+    if task not in EXPERTS:
+        raise ValueError(f"no scripted expert for {task!r}; experts exist for {', '.join(EXPERTS)}")
+    key = f"{task} episode_length={episode_length} episodes={episodes} seed={seed}"
+    table = json.loads(cache.read_text()) if cache is not None and cache.is_file() else {}
+    if key in table:
+        return tuple(table[key])
+    env = RoboDeskEnv(task=task, episode_length=episode_length, render_images=False)
+    out = []
+    for policy in ("random", "expert"):
+        total = 0.0
+        for e in range(episodes):
+            env.reset(seed=seed + e)
+            rng, expert = np.random.default_rng(seed + e), EXPERTS[task](env)
+            done = False
+            while not done:
+                action = rng.uniform(-1, 1, 5) if policy == "random" else expert.act(env)
+                _, r, term, trunc, _ = env.step(action)
+                total, done = total + r, term or trunc
+        out.append(total / episodes)
+    env.close()
+    if cache is not None:  # written whole, then renamed: a reader never sees half a file
+        table[key] = out
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        tmp = cache.with_name(f".{cache.name}.{os.getpid()}.tmp")
+        tmp.write_text(json.dumps(table, indent=1))
+        os.replace(tmp, cache)
+    return out[0], out[1]

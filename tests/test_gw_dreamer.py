@@ -10,7 +10,14 @@ import pytest
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
-from conftest import assert_episodes_separated, interrupt_run, previous_layout, run_script, tiny_agent_args
+from conftest import (
+    assert_episodes_separated,
+    interrupt_run,
+    previous_layout,
+    run_cli,
+    run_script,
+    tiny_agent_args,
+)
 
 import gw_dreamer as G
 
@@ -127,6 +134,7 @@ def test_robodesk_cli_run(pretrained_robodesk):
     assert "800 env steps, counted in simulator frames (4 per agent step)" in log
     assert "'env_steps': 800, 'agent_steps': 200, 'updates': 17" in log
     assert "push_green is a task it saw" in log  # the tiny GW's data: push_green expert + random
+    assert "scripted push_green expert" in log and "'final_normalised_return'" in log
     ck = torch.load(
         tmp / "ck" / "robodesk" / "agents" / "gw_dreamer_gw_robodesk_push_green_s1.pt", weights_only=False
     )
@@ -465,3 +473,56 @@ def test_update_flops_match_the_closed_form_count_of_the_layers(env, imag_from):
     )
     expected = world + dream + ac
     assert abs(counted - expected) < 0.1 * expected, (counted, expected)
+
+
+def test_robodesk_cpu_preset_is_the_same_networks_smaller_and_the_paper_sizes_stay_the_default():
+    """Fails if the preset changes the paper's defaults, or leaves the networks at the paper's sizes."""
+    paper = G.Args(env="robodesk").resolve()
+    cpu = G.Args(env="robodesk", cpu_preset=True).resolve()
+    assert (paper.batch_size, paper.batch_length, paper.total_steps) == (32, 128, 1_000_000)
+    assert (cpu.batch_size, cpu.batch_length, cpu.total_steps, cpu.criterion) == (16, 64, 200_000, 0.70)
+    big, small = G.Agent("robodesk", 76, "twohot"), G.Agent("robodesk", 76, "twohot", cpu_preset=True)
+    assert (big.wm.hidden, small.wm.hidden) == (1024, 256)
+    assert small.actor.net[0].out_features == 256 and big.actor.net[0].out_features == 512
+    assert type(small.wm.gru) is type(big.wm.gru) and small.actor.discrete is False
+    ss = G.Agent("simple_shapes", 10, "twohot", cpu_preset=True)  # Simple Shapes: the paper's sizes
+    assert ss.wm.hidden == 64 and G.Args(env="simple_shapes", cpu_preset=True).resolve().batch_size == 64
+
+
+def test_robodesk_agent_reads_the_render_quality_of_its_gw_and_refuses_another(pretrained_robodesk, tmp_path):
+    """The tiny GW's data are fast images: an agent asking for faithful ones stops at start."""
+    ck = pretrained_robodesk[0] / "ck"
+    out = run_cli(
+        "gw_dreamer.py",
+        tmp_path,
+        "--env",
+        "robodesk",
+        "--checkpoint-dir",
+        str(ck),
+        "--render-quality",
+        "faithful",
+    )
+    assert out.returncode == 2 and "was trained on fast images" in out.stderr, out.stderr
+    args = G.Args(env="robodesk", checkpoint_dir=str(ck)).resolve()
+    G.load_frozen(args, "cpu")
+    assert args.render_quality == "fast"
+
+
+def test_robodesk_reference_returns_are_measured_once_then_read_from_the_cache(tmp_path, monkeypatch):
+    """0 = the random policy, 1 = the scripted expert; fails if the cache is not written or not read, or
+    the random return is not that of the seeded random policy."""
+    import envs.robodesk as R
+    from envs.robodesk_experts import reference_returns
+
+    cache = tmp_path / "ref.json"
+    lo, hi = reference_returns("push_green", episode_length=80, episodes=2, seed=5, cache=cache)
+    env, total = R.RoboDeskEnv(task="push_green", episode_length=80, render_images=False), 0.0
+    for e in range(2):  # the random policy by hand
+        env.reset(seed=5 + e)
+        rng, done = np.random.default_rng(5 + e), False
+        while not done:
+            _, r, term, trunc, _ = env.step(rng.uniform(-1, 1, 5))
+            total, done = total + r, term or trunc
+    assert lo == pytest.approx(total / 2) and hi > lo  # the expert heads for the button
+    monkeypatch.setattr(R, "RoboDeskEnv", None)  # a second call must not run episodes
+    assert reference_returns("push_green", episode_length=80, episodes=2, seed=5, cache=cache) == (lo, hi)

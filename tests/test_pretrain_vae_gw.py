@@ -268,3 +268,53 @@ def test_two_collecting_workers_give_the_simple_shapes_data_of_one(tmp_path):
         with np.load(a) as x, np.load(b) as y:
             for key in ("image", "attr", "source"):
                 np.testing.assert_array_equal(x[key], y[key], err_msg=key)
+
+
+def test_robodesk_readout_figures_per_group_against_hand_computed_values():
+    """Fails if R^2 is computed against the wrong mean or over the wrong columns, or the error is not
+    in cm."""
+    rng = np.random.default_rng(0)
+    true = rng.normal(0, 0.1, (50, 76)).astype(np.float32)
+    true[:, P.READOUT_GROUPS["drawer"]] = -0.1  # a drawer that never moved: no R^2
+    exact = P.robodesk_readout(true.copy(), true, "fused")
+    assert exact["fused_end_effector_r2"] == pytest.approx(1.0)
+    assert exact["fused_end_effector_error_cm"] == pytest.approx(0.0, abs=1e-6)
+    assert np.isnan(exact["fused_drawer_r2"])
+    mean = np.broadcast_to(true.mean(0), true.shape).copy()  # predicting the mean: R^2 = 0 everywhere
+    at_mean = P.robodesk_readout(mean, true, "vision")
+    for group in ("end_effector", "gripper", "button_green", "ball", "flat_block"):
+        assert at_mean[f"vision_{group}_r2"] == pytest.approx(0.0, abs=1e-6), group
+    shifted = true.copy()
+    shifted[:, 18:21] += 0.01  # 1 cm along each axis: sqrt(3) cm away
+    ee = P.robodesk_readout(shifted, true, "attr")
+    assert ee["attr_end_effector_error_cm"] == pytest.approx(100 * np.sqrt(3) * 0.01, rel=1e-4)
+    y = true[:, 18:21].astype(np.float64)
+    want = np.mean(1 - 50 * 0.01**2 / ((y - y.mean(0)) ** 2).sum(0))
+    assert ee["attr_end_effector_r2"] == pytest.approx(want, rel=1e-4)
+    assert ee["attr_ball_r2"] == pytest.approx(1.0)  # other groups untouched
+
+
+def test_robodesk_cpu_preset_leaves_push_red_and_blue_out_and_uses_fast_images():
+    args = P.Args(env="robodesk", cpu_preset=True).resolve()
+    assert "push_red" not in args.tasks and "push_blue" not in args.tasks and "push_green" in args.tasks
+    assert args.render_quality == "fast" and args.workers == 2
+    paper = P.Args(env="robodesk").resolve()
+    assert (paper.vae_width, paper.vae_steps, paper.n_samples, paper.tasks) == (1024, 500_000, 2_000_000, ())
+    given = P.Args(env="robodesk", cpu_preset=True, tasks=("open_slide",), vae_steps=10).resolve()
+    assert given.tasks == ("open_slide",) and given.vae_steps == 10  # explicit flags win
+
+
+def test_robodesk_collection_interleaves_the_sources():
+    """The held-out samples at the front of the data hold every source: fails if the episodes are
+    written block by block, or an episode loses its own seed."""
+    blocks = [("expert", "push_green", 8), ("expert", "open_slide", 6), ("random", "push_green", 8)]
+    jobs = P.robodesk_jobs(blocks, seed=3, steps=4)
+    assert [(src, task, n) for src, task, n, _ in jobs] == [
+        ("expert", "push_green", 4),
+        ("expert", "open_slide", 4),
+        ("random", "push_green", 4),
+        ("expert", "push_green", 4),
+        ("expert", "open_slide", 2),
+        ("random", "push_green", 4),
+    ]
+    assert jobs[4][3] == P.episode_seed(3, 1, 1) and jobs[3][3] == P.episode_seed(3, 0, 1)

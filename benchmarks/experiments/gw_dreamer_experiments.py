@@ -60,8 +60,8 @@ def experiment_agent(args: Args) -> type[G.Agent]:
             return z_next, self.reward_head(feat), self.done_head(feat).squeeze(-1)
 
     class ExperimentAgent(G.Agent):
-        def __init__(self, env, z_dim, reward_loss, return_norm_decay=0.99):
-            super().__init__(env, z_dim, reward_loss, return_norm_decay)
+        def __init__(self, env, z_dim, reward_loss, return_norm_decay=0.99, cpu_preset=False):
+            super().__init__(env, z_dim, reward_loss, return_norm_decay, cpu_preset)
             if args.heads_read_sg_z:
                 self.wm.__class__ = SgZWorldModel  # same parameters, other forward
             if args.zero_init:  # DreamerV3: reward and value predictions start at 0
@@ -71,8 +71,8 @@ def experiment_agent(args: Args) -> type[G.Agent]:
                 self.slow_critic.load_state_dict(self.critic.state_dict())
 
         @staticmethod
-        def feature_size(env, z_dim):
-            return G.SIZES[env]["gru_hidden"] + (z_dim if args.ac_input == "hz" else 0)
+        def feature_size(sizes, z_dim):
+            return sizes["gru_hidden"] + (z_dim if args.ac_input == "hz" else 0)
 
         def features(self, h, z):
             return torch.cat([h, z], -1) if args.ac_input == "hz" else h
