@@ -206,7 +206,7 @@ TABLE = {
         criterion=0.70,
     ),
 }
-# --cpu-preset on RoboDesk: 200,000 frames in about 2.5 hours on one core (docs/gw_dreamer.md).
+# --cpu-preset on RoboDesk: 200,000 frames in about 2.6 to 2.9 hours on one core (docs/gw_dreamer.md).
 CPU_TABLE = {"robodesk": dict(total_steps=200_000, batch_size=16, batch_length=64, eval_every=25_000)}
 TAG = "gw_dreamer"  # the prefix of every line this script prints
 # Network sizes of the appendix tables ("GRU architecture", "World Model heads", "Actor-Critic").
@@ -246,10 +246,6 @@ CPU_SIZES = {
 # One update at the paper's RoboDesk sizes on one CPU core next to another run, in seconds
 # (benchmarks/gw_dreamer_throughput.py); a run at those sizes on a CPU prints its estimated time.
 PAPER_SIZE_CPU_S = 4.9
-
-
-def dev_of(module: nn.Module) -> torch.device:
-    return next(module.parameters()).device
 
 
 def sizes_of(env: str, cpu_preset: bool = False) -> dict:
@@ -971,7 +967,7 @@ ROBODESK_TASKS = "push_green open_slide open_drawer upright_block_off_table flat
 # the paper's scale (times of docs/pretrain_vae_gw.md: one CPU core collecting, one H100 training).
 ROBODESK_PIPELINE = """the RoboDesk agents read the frozen VAEs and GW of pretrain_vae_gw.py; make them first.
   CPU scale (one GW for five tasks, fast images; docs/pretrain_vae_gw.md):
-    python pretrain_vae_gw.py --env robodesk --cpu-preset{cd}   # about 90 min on 2 cores
+    python pretrain_vae_gw.py --env robodesk --cpu-preset{cd}   # about 64 min on 2 cores
     then this command with --cpu-preset
   paper scale (GPU): python pretrain_vae_gw.py --env robodesk --task {task}{cd}
     (2M samples: 11 h of collection on one core with --render-quality fast, 190 h faithful; then
@@ -1169,7 +1165,7 @@ MAY_CHANGE = set(
     " exp_name eval_only drop compile".split()
 )
 # Settings an evaluation must share with the agent it loads (they shape its networks or inputs).
-EVAL_KEYS = ("task", "reward_loss")
+EVAL_KEYS = ("task", "reward_loss", "cpu_preset")
 # Settings of agents trained by benchmarks/experiments/gw_dreamer_experiments.py (or by this script
 # before they moved there), at the values that make them this script's model.
 EXPERIMENT_KEYS = {"ac_input": "h", "heads_read_sg_z": False, "zero_init": False, "z_source": "gw"}
@@ -1391,12 +1387,12 @@ def start_run(args: Args, encoder: FrozenEncoder, agent: Agent, paths: dict, age
         print(f"[{TAG}] normalised return: random policy {ref[0]:.1f} -> 0, {scripted} {ref[1]:.1f} -> 1")
     else:
         print(f"[{TAG}] {args.task} has no scripted expert: returns are not normalised, no criterion")
-    if args.env == "robodesk" and not args.cpu_preset and str(dev_of(agent)) == "cpu":
+    if args.env == "robodesk" and not args.cpu_preset and torch.device(args.device).type == "cpu":
         hours = updates_due(args.total_steps, args) * PAPER_SIZE_CPU_S / 3600
         print(
             f"[{TAG}] the paper's sizes on a CPU: about {PAPER_SIZE_CPU_S} s per update on one core, so "
             f"{args.total_steps:,} frames take about {hours:.0f} h; --cpu-preset trains 200,000 frames in "
-            "about 2.5 h (docs/gw_dreamer.md)"
+            "about 3 h (docs/gw_dreamer.md)"
         )
     return run
 

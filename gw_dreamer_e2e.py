@@ -1081,7 +1081,7 @@ ROBODESK_TASKS = "push_green open_slide open_drawer upright_block_off_table flat
 # the paper's scale (times of docs/pretrain_vae_gw.md: one CPU core collecting, one H100 training).
 ROBODESK_PIPELINE = """the RoboDesk agents read the frozen VAEs and GW of pretrain_vae_gw.py; make them first.
   CPU scale (one GW for five tasks, fast images; docs/pretrain_vae_gw.md):
-    python pretrain_vae_gw.py --env robodesk --cpu-preset{cd}   # about 90 min on 2 cores
+    python pretrain_vae_gw.py --env robodesk --cpu-preset{cd}   # about 64 min on 2 cores
     then this command with --cpu-preset
   paper scale (GPU): python pretrain_vae_gw.py --env robodesk --task {task}{cd}
     (2M samples: 11 h of collection on one core with --render-quality fast, 190 h faithful; then
@@ -1299,7 +1299,8 @@ def load_agent_checkpoint(path: Path, args: Args, fingerprint: float) -> dict:
     saved, now = ckpt["args"], asdict(args)
     if args.env == "simple_shapes":
         now["task"] = saved.get("task", now["task"])  # Simple Shapes has no task
-    changed = setting_changes(saved, now, EVAL_KEYS)
+    # On RoboDesk --cpu-preset sets the network sizes; on Simple Shapes only the GW's batch.
+    changed = setting_changes(saved, now, EVAL_KEYS + (("cpu_preset",) if args.env == "robodesk" else ()))
     if changed:
         raise UsageError(f"{path} was trained with {' '.join(changed)}; pass {' '.join(changed)}")
     changed = setting_changes(saved, now, [k for k in now if k not in MAY_CHANGE]) if args.resume else []

@@ -196,7 +196,8 @@ def reference_returns(
         total = 0.0
         for e in range(episodes):
             env.reset(seed=seed + e)
-            rng, expert = np.random.default_rng(seed + e), EXPERTS[task](env)
+            rng = np.random.default_rng(seed + e)
+            expert = EXPERTS[task](env) if policy == "expert" else None
             done = False
             while not done:
                 action = rng.uniform(-1, 1, 5) if policy == "random" else expert.act(env)

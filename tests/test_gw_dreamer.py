@@ -526,3 +526,16 @@ def test_robodesk_reference_returns_are_measured_once_then_read_from_the_cache(t
     assert lo == pytest.approx(total / 2) and hi > lo  # the expert heads for the button
     monkeypatch.setattr(R, "RoboDeskEnv", None)  # a second call must not run episodes
     assert reference_returns("push_green", episode_length=80, episodes=2, seed=5, cache=cache) == (lo, hi)
+
+
+def test_an_agent_of_the_cpu_preset_is_evaluated_only_with_it(tmp_path):
+    """Its networks are other sizes: fails if --cpu-preset is not among the settings an evaluation shares."""
+    from dataclasses import asdict
+
+    trained = G.Args(env="robodesk", cpu_preset=True).resolve()
+    ck = {"kind": "gw_dreamer", "env": "robodesk", "gw_fingerprint": 0.0, "args": asdict(trained)}
+    ck["agent"] = G.Agent("robodesk", 76, "twohot", cpu_preset=True).state_dict()
+    torch.save(ck, tmp_path / "agent.pt")
+    with pytest.raises(G.UsageError, match="--cpu-preset True"):
+        G.load_agent_checkpoint(tmp_path / "agent.pt", G.Args(env="robodesk").resolve(), 0.0)
+    assert G.load_agent_checkpoint(tmp_path / "agent.pt", trained, 0.0)["env"] == "robodesk"
