@@ -239,7 +239,8 @@ TABLE = {
 # update costs ~15x more at 2,048 than at 256 (the paper gives no batch for the end-to-end GW).
 CPU_PRESET = {"gw_batch_size": 256}
 # RoboDesk under --cpu-preset: gw_dreamer.py's CPU batch (and its CPU_SIZES networks).
-CPU_TABLE = {"robodesk": dict(total_steps=200_000, batch_size=16, batch_length=64, eval_every=25_000)}
+# An evaluation's 10 episodes are 20,000 frames of acting, so the preset evaluates every 100,000.
+CPU_TABLE = {"robodesk": dict(total_steps=200_000, batch_size=16, batch_length=64, eval_every=100_000)}
 TAG = "gw_dreamer_e2e"  # the prefix of every line this script prints
 SIZES = {
     "simple_shapes": {

@@ -1,20 +1,22 @@
-"""The paper's Simple Shapes figures and FLOPs table, drawn from recorded runs.
+"""The paper's figures and FLOPs table of one environment, drawn from recorded runs.
 
     python benchmarks/paper_figures.py                       # from the records in docs/results/
     python benchmarks/paper_figures.py --runs runs --export docs/results   # from TensorBoard runs
+    python benchmarks/paper_figures.py --env robodesk        # RoboDesk (Figures 3 and 5, right)
 
-Writes to --out (docs/figures/):
-- simple_shapes_curves.png: normalised return of every model, smoothed over 10 episodes, mean ± s.e.m.
-  over seeds, on log-scaled env steps, with the criterion line (the paper's Figure 3, left);
-- simple_shapes_ablation.png: normalised return with both modalities, without vision, without
-  attributes, mean ± s.e.m. over agents (Figure 5, left);
-- simple_shapes_flops.md: env steps and RL training FLOPs to the criterion per model (the FLOPs table);
-- gw_figure2.png: the GW grid of Figure 2 (image, image of the attributes, translation, demi-cycle,
-  fusion) from a Simple Shapes GW checkpoint (the bundled one by default).
+Writes to --out (docs/figures/), <env> being simple_shapes or robodesk:
+- <env>_curves.png: normalised return of every model, smoothed over 10 episodes, mean ± s.e.m.
+  over seeds, on log-scaled env steps, with the criterion line (the paper's Figure 3);
+- <env>_ablation.png: normalised return with both modalities, without vision, without
+  attributes, mean ± s.e.m. over agents (Figure 5);
+- <env>_flops.md: env steps and RL training FLOPs to the criterion per model (the FLOPs table);
+- gw_figure2.png (Simple Shapes): the GW grid of Figure 2 (image, image of the attributes, translation,
+  demi-cycle, fusion) from a Simple Shapes GW checkpoint (the bundled one by default).
 
 Runs are recognised by the default run names of the agent scripts (runs/<name>_s<seed>, e.g.
-gw_dreamer_gw_simple_shapes_s3); a run's modality ablation is read from runs/<run>/eval_drop_<drop>.txt,
-the `[eval]` line of `--eval-only --drop <drop>` (benchmarks/reproduce_simple_shapes.sh writes them).
+gw_dreamer_gw_simple_shapes_s3, gw_dreamer_gw_robodesk_push_green_s1); a run's modality ablation is read
+from runs/<run>/eval_drop_<drop>.txt, the `[eval]` line of `--eval-only --drop <drop>`
+(benchmarks/reproduce_simple_shapes.sh writes them). RoboDesk records carry the task of each run.
 """
 
 import csv
@@ -31,27 +33,45 @@ import tyro
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-CRITERION = 0.75  # smoothed normalised return (docs/paper_readings.md)
+# smoothed normalised return at the criterion: Simple Shapes 0.75, RoboDesk the paper's 70%
+CRITERION = {"simple_shapes": 0.75, "robodesk": 0.70}
+TITLE = {"simple_shapes": "Simple Shapes", "robodesk": "RoboDesk"}
 SMOOTH = 10  # episodes
-# label, default run name (seed removed), the paper's steps to the criterion (Figure 3, read off the plot)
-MODELS = (
-    ("GW-Dreamer", "gw_dreamer_gw_simple_shapes", "≈ 20,000"),
-    ("GW-Dreamer end-to-end", "gw_dreamer_e2e_gw_simple_shapes", "≈ 50,000"),
-    ("CLIP-Dreamer", "gw_dreamer_clip_simple_shapes", "fails"),
-    ("Dreamer", "dreamer_raw_2m_simple_shapes", "≈ 200,000"),
-    ("VAE-Dreamer", "dreamer_vae_2m_simple_shapes", "≈ 200,000"),
-    ("GW-PPO", "ppo_gw_simple_shapes", "≈ 200,000"),
-    ("VAE-PPO", "ppo_vae_simple_shapes", "≈ 400,000"),
-    ("CLIP-PPO", "ppo_clip_simple_shapes", "fails"),
-    ("PPO", "ppo_raw_simple_shapes", "≈ 300,000"),
+# label, the run name's model part (before _<env>), the paper's steps to the criterion (Figure 3, read off
+# the plot; RoboDesk in frames: GW-Dreamer about 200,000, "4x faster than other Dreamer variants")
+MODEL_TABLE = (
+    ("GW-Dreamer", "gw_dreamer_gw", "≈ 20,000", "≈ 200,000"),
+    ("GW-Dreamer end-to-end", "gw_dreamer_e2e_gw", "≈ 50,000", "–"),
+    ("CLIP-Dreamer", "gw_dreamer_clip", "fails", "–"),
+    ("Dreamer", "dreamer_raw_2m", "≈ 200,000", "≈ 800,000"),
+    ("VAE-Dreamer", "dreamer_vae_2m", "≈ 200,000", "≈ 800,000"),
+    ("GW-PPO", "ppo_gw", "≈ 200,000", "–"),
+    ("VAE-PPO", "ppo_vae", "≈ 400,000", "–"),
+    ("CLIP-PPO", "ppo_clip", "fails", "–"),
+    ("PPO", "ppo_raw", "≈ 300,000", "–"),
 )
-PAPER = {label: paper for label, _, paper in MODELS}
+
+
+def models(env: str) -> list[tuple[str, str, str]]:
+    """(label, default run name without seed and task, paper's steps to the criterion) for ``env``."""
+    col = 2 if env == "simple_shapes" else 3
+    return [(m[0], f"{m[1]}_{env}", m[col]) for m in MODEL_TABLE]
+
+
 DROPS = {"none": "both", "vision": "without vision", "attr": "without attributes"}
 RUN_FIELDS = (
     "model setting seed status criterion_step env_steps_run rl_train_flops wall_min command note".split()
 )
 CURVE_FIELDS = "model setting seed env_step normalised_return".split()
 ABLATION_FIELDS = "model setting seed drop episodes return_mean return_sem normalised_return command".split()
+
+
+def fields(kind: str, env: str) -> list[str]:
+    """Columns of a record file: RoboDesk's add the task after the seed."""
+    cols = {"runs": RUN_FIELDS, "curves": CURVE_FIELDS, "ablation": ABLATION_FIELDS}[kind]
+    return cols if env == "simple_shapes" else [*cols[:3], "task", *cols[3:]]
+
+
 EVAL_LINE = re.compile(
     r"\[eval\] drop=(\w+): return (-?[\d.]+) ± ([\d.]+) \(s\.e\.m\., (\d+) episodes\), normalised (-?[\d.]+)"
 )
@@ -59,8 +79,10 @@ EVAL_LINE = re.compile(
 
 @dataclass
 class Args:
+    env: str = "simple_shapes"
+    """environment of the figures: simple_shapes or robodesk"""
     results: str = "docs/results"
-    """folder of the committed records (simple_shapes_{runs,curves,ablation}.csv), read unless --runs"""
+    """folder of the committed records (<env>_{runs,curves,ablation}.csv), read unless --runs"""
     runs: str | None = None
     """read TensorBoard runs from this folder instead of --results"""
     export: str | None = None
@@ -70,7 +92,7 @@ class Args:
     setting: str = "default"
     """which setting of the records to draw (the default command's runs)"""
     gw_checkpoint: str = "envs/pretrained/simple_shapes/gw.pt"
-    """GW of Figure 2 ('' skips it)"""
+    """Simple Shapes GW of Figure 2 ('' skips it)"""
     vae_checkpoint: str = "envs/pretrained/simple_shapes/vae.pt"
     """VAEs of that GW"""
     caption: str = ""
@@ -95,33 +117,36 @@ def write_csv(path: Path, rows: list[dict], fields: list[str]) -> None:
     tmp.replace(path)
 
 
-def model_of(run_name: str) -> tuple[str, int] | None:
-    for label, name, _ in MODELS:
-        m = re.fullmatch(re.escape(name) + r"_s(\d+)", run_name)
+def model_of(run_name: str, env: str = "simple_shapes") -> tuple[str, int, str] | None:
+    """(model, seed, task) of a default run name; the task is "" on Simple Shapes."""
+    task = "" if env == "simple_shapes" else r"_(?P<task>[a-z_]+?)"
+    for label, name, _ in models(env):
+        m = re.fullmatch(re.escape(name) + task + r"_s(?P<seed>\d+)", run_name)
         if m:
-            return label, int(m.group(1))
+            return label, int(m.group("seed")), m.groupdict().get("task") or ""
     return None
 
 
-def read_runs(folder: Path) -> tuple[list[dict], list[dict], list[dict]]:
-    """(runs, curves, ablation) records of every recognised run under ``folder``."""
+def read_runs(folder: Path, env: str = "simple_shapes") -> tuple[list[dict], list[dict], list[dict]]:
+    """(runs, curves, ablation) records of every recognised run of ``env`` under ``folder``."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     runs, curves, ablation = [], [], []
     for run in sorted(p for p in folder.iterdir() if p.is_dir()):
-        known = model_of(run.name)
+        known = model_of(run.name, env)
         if known is None:
             continue
-        model, seed = known
+        model, seed, task = known
+        tag = {"task": task} if env != "simple_shapes" else {}
         acc = EventAccumulator(str(run), size_guidance={"scalars": 0, "tensors": 0}).Reload()
         tags = acc.Tags()["scalars"]
         if "charts/normalised_return" not in tags:
             continue
         episodes = acc.Scalars("charts/normalised_return")
         curves += [
-            dict(
-                model=model, setting="default", seed=seed, env_step=e.step, normalised_return=f"{e.value:.4f}"
-            )
+            dict(model=model, setting="default", seed=seed, env_step=e.step)
+            | tag
+            | dict(normalised_return=f"{e.value:.4f}")
             for e in episodes
         ]
         crit = acc.Scalars("charts/criterion_step")[0].step if "charts/criterion_step" in tags else None
@@ -142,6 +167,7 @@ def read_runs(folder: Path) -> tuple[list[dict], list[dict], list[dict]]:
         wall_min = f"{(max(walls) - min(walls)) / 60:.1f}"
         runs.append(
             dict(model=model, setting="default", seed=seed, status=status, criterion_step=crit or "")
+            | tag
             | dict(env_steps_run=last, rl_train_flops=flops, wall_min=wall_min, command=f"runs/{run.name}")
         )
         for txt in sorted(run.glob("eval_drop_*.txt")):
@@ -150,6 +176,7 @@ def read_runs(folder: Path) -> tuple[list[dict], list[dict], list[dict]]:
                 drop, mean, sem, n, norm = m.groups()
                 ablation.append(
                     dict(model=model, setting="default", seed=seed, drop=drop, episodes=n)
+                    | tag
                     | dict(return_mean=mean, return_sem=sem, normalised_return=norm)
                     | dict(command=f"runs/{run.name}/{txt.name}")
                 )
@@ -180,13 +207,13 @@ def smoothed_on_grid(steps: np.ndarray, returns: np.ndarray, grid: np.ndarray) -
     return np.where(idx >= 0, smooth[np.clip(idx, 0, None)], np.nan)
 
 
-def flops_table(runs: list[dict], setting: str) -> str:
+def flops_table(runs: list[dict], setting: str, env: str = "simple_shapes") -> str:
     lines = [
         "| model | reached / run | env steps to the criterion (mean ± s.e.m.)"
         " | RL training FLOPs to the criterion (mean ± s.e.m.) | paper (steps) |",
         "| --- | --- | --- | --- | --- |",
     ]
-    for label, _, paper in MODELS:
+    for label, _, paper in models(env):
         rows = [r for r in runs if r["model"] == label and r["setting"] == setting and r["status"] != "cut"]
         if not rows:
             continue
@@ -217,12 +244,14 @@ def flops_table(runs: list[dict], setting: str) -> str:
 # --------------------------------------------------------------------------------------------------
 # Figures
 # --------------------------------------------------------------------------------------------------
-def plot_curves(curves: list[dict], runs: list[dict], setting: str, path: Path, caption: str) -> list[str]:
+def plot_curves(
+    curves: list[dict], runs: list[dict], setting: str, path: Path, caption: str, env: str = "simple_shapes"
+) -> list[str]:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7.5, 4.5))
     drawn = []
-    for label, _, _ in MODELS:
+    for label, _, _ in models(env):
         mine = [r for r in runs if r["model"] == label and r["setting"] == setting]
         done = {int(r["seed"]) for r in mine if r["status"] != "cut"}  # a cut run's curve is partial
         rows = [
@@ -249,11 +278,12 @@ def plot_curves(curves: list[dict], runs: list[dict], setting: str, path: Path, 
         line = ax.plot(grid[ok], mean, label=f"{label} ({reached}/{len(seeds)} reached)")[0]
         ax.fill_between(grid[ok], mean - sem, mean + sem, color=line.get_color(), alpha=0.2)
         drawn.append(label)
-    ax.axhline(CRITERION, color="k", ls="--", lw=1, label=f"criterion ({CRITERION})")
+    ax.axhline(CRITERION[env], color="k", ls="--", lw=1, label=f"criterion ({CRITERION[env]})")
     ax.set_xscale("log")
-    ax.set_xlabel("env steps")
+    ax.set_xlabel("env steps" if env == "simple_shapes" else "env steps (simulator frames)")
     ax.set_ylabel("normalised return (smoothed over 10 episodes)")
-    ax.set_title("Simple Shapes: mean ± s.e.m. over seeds")
+    tasks = sorted({r.get("task", "") for r in runs if r["setting"] == setting} - {""})
+    ax.set_title(f"{TITLE[env]}{' ' + ', '.join(tasks) if tasks else ''}: mean ± s.e.m. over seeds")
     ax.legend(fontsize=8, loc="lower right")
     fig.text(0.01, 0.01, caption, fontsize=7)
     fig.tight_layout(rect=(0, 0.03, 1, 1))
@@ -262,10 +292,14 @@ def plot_curves(curves: list[dict], runs: list[dict], setting: str, path: Path, 
     return drawn
 
 
-def plot_ablation(ablation: list[dict], setting: str, path: Path, caption: str) -> list[str]:
+def plot_ablation(
+    ablation: list[dict], setting: str, path: Path, caption: str, env: str = "simple_shapes"
+) -> list[str]:
     import matplotlib.pyplot as plt
 
-    labels = [m for m, _, _ in MODELS if any(r["model"] == m and r["setting"] == setting for r in ablation)]
+    labels = [
+        m for m, _, _ in models(env) if any(r["model"] == m and r["setting"] == setting for r in ablation)
+    ]
     fig, ax = plt.subplots(figsize=(max(4.0, 2.2 * len(labels) + 1.5), 4.0))
     width = 0.8 / len(DROPS)
     for j, (drop, name) in enumerate(DROPS.items()):
@@ -277,14 +311,14 @@ def plot_ablation(ablation: list[dict], setting: str, path: Path, caption: str) 
             means.append(mu), sems.append(0.0 if math.isnan(se) else se)
         x = np.arange(len(labels)) + (j - 1) * width
         ax.bar(x, means, width, yerr=sems, capsize=3, label=name)
-    ax.axhline(CRITERION, color="k", ls="--", lw=1, label=f"criterion ({CRITERION})")
+    ax.axhline(CRITERION[env], color="k", ls="--", lw=1, label=f"criterion ({CRITERION[env]})")
     ax.set_xticks(np.arange(len(labels)))
     n_agents = [
         len({r["seed"] for r in ablation if r["model"] == m and r["setting"] == setting}) for m in labels
     ]
     ax.set_xticklabels([f"{m}\n({n} agents)" for m, n in zip(labels, n_agents, strict=True)])
     ax.set_ylabel("normalised return")
-    ax.set_title("Simple Shapes: modality ablation (mean ± s.e.m.)")
+    ax.set_title(f"{TITLE[env]}: modality ablation (mean ± s.e.m.)")
     ax.legend(fontsize=8)
     fig.text(0.01, 0.01, caption, fontsize=7)
     fig.tight_layout(rect=(0, 0.04, 1, 1))
@@ -351,30 +385,32 @@ def main(args: Args) -> dict:
         p = Path(getattr(args, name))
         if getattr(args, name) and not p.is_absolute() and not p.exists() and (ROOT / p).exists():
             setattr(args, name, str(ROOT / p))
+    env = args.env
+    if env not in CRITERION:
+        raise SystemExit(f"error: --env {env}: choose one of {', '.join(CRITERION)}")
     if args.runs:
-        runs, curves, ablation = read_runs(Path(args.runs))
+        runs, curves, ablation = read_runs(Path(args.runs), env)
         if not runs:
-            raise SystemExit(f"error: no run of a known model under {args.runs} (names: <model>_s<seed>)")
+            raise SystemExit(
+                f"error: no {env} run of a known model under {args.runs} (names: <model>_{env}_s<seed>"
+                + (")" if env == "simple_shapes" else " with the task before _s)")
+            )
     else:
         res = Path(args.results)
-        runs, curves, ablation = (
-            read_csv(res / f"simple_shapes_{k}.csv") for k in ("runs", "curves", "ablation")
-        )
+        runs, curves, ablation = (read_csv(res / f"{env}_{k}.csv") for k in ("runs", "curves", "ablation"))
     if args.export:
-        records = {"runs": (runs, RUN_FIELDS), "curves": (curves, CURVE_FIELDS)}
-        records["ablation"] = (ablation, ABLATION_FIELDS)
-        for k, (rows, fields) in records.items():
-            write_csv(Path(args.export) / f"simple_shapes_{k}.csv", rows, fields)
+        for k, rows in {"runs": runs, "curves": curves, "ablation": ablation}.items():
+            write_csv(Path(args.export) / f"{env}_{k}.csv", rows, fields(k, env))
     caption = args.caption or f"torch {torch.__version__}"
-    drawn = plot_curves(curves, runs, args.setting, out / "simple_shapes_curves.png", caption)
-    bars = plot_ablation(ablation, args.setting, out / "simple_shapes_ablation.png", caption)
-    table = flops_table(runs, args.setting)
-    (out / "simple_shapes_flops.md").write_text(
-        "# Simple Shapes: env steps and RL training FLOPs to the return criterion\n\n"
+    drawn = plot_curves(curves, runs, args.setting, out / f"{env}_curves.png", caption, env)
+    bars = plot_ablation(ablation, args.setting, out / f"{env}_ablation.png", caption, env)
+    table = flops_table(runs, args.setting, env)
+    (out / f"{env}_flops.md").write_text(
+        f"# {TITLE[env]}: env steps and RL training FLOPs to the return criterion\n\n"
         f"Drawn by `benchmarks/paper_figures.py` from {shown(args.runs or args.results)} ({caption}).\n\n"
         + table
     )
-    if args.gw_checkpoint:
+    if args.gw_checkpoint and env == "simple_shapes":
         figure2(Path(args.gw_checkpoint), Path(args.vae_checkpoint), out / "gw_figure2.png", caption)
     print(table)
     print(

@@ -5,6 +5,7 @@ import math
 import shutil
 from types import SimpleNamespace
 
+import gymnasium as gym
 import numpy as np
 import pytest
 import torch
@@ -539,3 +540,32 @@ def test_an_agent_of_the_cpu_preset_is_evaluated_only_with_it(tmp_path):
     with pytest.raises(G.UsageError, match="--cpu-preset True"):
         G.load_agent_checkpoint(tmp_path / "agent.pt", G.Args(env="robodesk").resolve(), 0.0)
     assert G.load_agent_checkpoint(tmp_path / "agent.pt", trained, 0.0)["env"] == "robodesk"
+
+
+class _Flags(gym.Env):
+    """An env whose step k (1-based) reports success k % 2 and that ends after 3 steps."""
+
+    observation_space = gym.spaces.Box(-1, 1, (1,))
+    action_space = gym.spaces.Box(-1, 1, (1,))
+
+    def reset(self, *, seed=None, options=None):
+        self.k = 0
+        return np.zeros(1, np.float32), {"success": False}
+
+    def step(self, action):
+        self.k += 1
+        return np.zeros(1, np.float32), 0.0, self.k == 3, False, {"success": bool(self.k % 2)}
+
+
+def test_step_success_counts_the_final_step_of_an_episode_that_auto_reset():
+    """Through gymnasium's same-step autoreset, the success of the step that ended an episode is in
+    final_info (the top-level flag is the new episode's reset). Fails if final_info is ignored."""
+    envs = gym.vector.SyncVectorEnv([_Flags, _Flags], autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
+    envs.reset(seed=0)
+    counts = []
+    for _ in range(3):
+        *_, info = envs.step(np.zeros((2, 1), np.float32))
+        counts.append(G.step_success(info, 2))
+    envs.close()
+    assert [c.tolist() for c in counts] == [[1, 1], [0, 0], [1, 1]]  # steps 1, 2, 3 (the last one resets)
+    assert G.step_success({}, 3).tolist() == [0, 0, 0]  # Simple Shapes: no success flag

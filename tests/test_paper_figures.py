@@ -86,6 +86,41 @@ def test_figures_and_table_from_event_files(tmp_path):
     assert "1,500 ± 500" in again
 
 
+def test_robodesk_figures_carry_the_task_and_the_70_percent_criterion(tmp_path):
+    runs = tmp_path / "runs"
+    drops = {"none": 0.75, "vision": 0.7, "attr": 0.65}
+    # criterion at 30,000 frames (3e13 FLOPs); one seed not reached; a Simple Shapes run is not RoboDesk's
+    fake_run(
+        runs, "gw_dreamer_gw_robodesk_push_green_s1", [0.1] * 15 + [0.8] * 15, 2000, 30000, 60000, drops=drops
+    )
+    fake_run(runs, "gw_dreamer_gw_robodesk_push_green_s2", [0.3] * 30, 2000, None, 60000)
+    fake_run(runs, "gw_dreamer_gw_simple_shapes_s1", [0.9] * 20, 100, 1000, 2000)
+    out, res = tmp_path / "fig", tmp_path / "res"
+    cmd = ["--env", "robodesk", "--runs", str(runs), "--out", str(out), "--export", str(res)]
+    printed = run_script("benchmarks/paper_figures.py", tmp_path, *cmd, "--caption", "test machine")
+    for png in ("robodesk_curves.png", "robodesk_ablation.png"):
+        assert (out / png).read_bytes().startswith(PNG), png
+    assert not (out / "gw_figure2.png").exists()  # Figure 2 is Simple Shapes'
+    assert "| GW-Dreamer | 1 / 2 | 30,000 | 3.00e+13 | ≈ 200,000 |" in printed
+    with open(res / "robodesk_runs.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [(r["seed"], r["task"], r["status"]) for r in rows] == [
+        ("1", "push_green", "reached"),
+        ("2", "push_green", "not reached"),
+    ]
+    with open(res / "robodesk_ablation.csv", newline="") as f:
+        assert {r["drop"]: (r["task"], float(r["normalised_return"])) for r in csv.DictReader(f)} == {
+            d: ("push_green", v) for d, v in drops.items()
+        }
+    with open(res / "robodesk_curves.csv", newline="") as f:
+        header = f.readline().strip().split(",")
+    assert header == ["model", "setting", "seed", "task", "env_step", "normalised_return"]
+    again = run_script(
+        "benchmarks/paper_figures.py", tmp_path, "--env", "robodesk", "--results", str(res), "--out", str(out)
+    )
+    assert "| GW-Dreamer | 1 / 2 | 30,000 | 3.00e+13 | ≈ 200,000 |" in again
+
+
 def test_the_smoothing_is_the_criterions(tmp_path):
     steps = np.arange(1, 21) * 100.0
     rets = np.r_[np.zeros(10), np.ones(10)]

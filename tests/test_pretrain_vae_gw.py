@@ -318,3 +318,21 @@ def test_robodesk_collection_interleaves_the_sources():
         ("random", "push_green", 4),
     ]
     assert jobs[4][3] == P.episode_seed(3, 1, 1) and jobs[3][3] == P.episode_seed(3, 0, 1)
+
+
+def test_robodesk_attribute_scale_floors_still_dimensions_and_widens_spiking_ones():
+    """A dimension still most of the time that spikes on contact (an object's velocity) is scaled so
+    that 99.9% of its samples lie within +-3; a spread one keeps its std; a constant one the floor."""
+    rng = np.random.default_rng(0)
+    n = 100_000
+    attr = np.zeros((n, 76), np.float32)
+    attr[:, 0] = rng.uniform(-1, 1, n)  # spread: std 0.577, 99.9% within 1.73 std
+    attr[: n // 100, 1] = 5.0 * rng.choice([-1, 1], n // 100)  # 1% spikes of +-5: std 0.5, spikes 10 std
+    attr[:, 2] = 2e-5 * rng.standard_normal(n)  # a button nobody pressed
+    mean, scale = P.normaliser(attr, "robodesk")
+    assert scale[0] == pytest.approx(attr[:, 0].std(), rel=1e-4)
+    assert scale[1] == pytest.approx(5.0 / 3, rel=1e-3)  # widened from 0.5
+    assert scale[2] == P.ATTR_STD_FLOOR
+    assert np.abs((attr[:, 1] - mean[1]) / scale[1]).max() <= 3.001
+    zeros, ones = P.normaliser(attr[:, :11], "simple_shapes")
+    assert not zeros.any() and (ones == 1).all()
