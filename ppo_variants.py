@@ -424,7 +424,7 @@ ROBODESK_TASKS = "push_green open_slide open_drawer upright_block_off_table flat
 # the paper's scale (times of docs/pretrain_vae_gw.md: one CPU core collecting, one H100 training).
 ROBODESK_PIPELINE = """the RoboDesk agents read the frozen VAEs and GW of pretrain_vae_gw.py; make them first.
   CPU scale (one GW for five tasks, fast images; docs/pretrain_vae_gw.md):
-    python pretrain_vae_gw.py --env robodesk --cpu-preset{cd}   # about 64 min on 2 cores
+    python pretrain_vae_gw.py --env robodesk --cpu-preset{cd}   # about 70 min on 2 cores
     then this command with --cpu-preset
   paper scale (GPU): python pretrain_vae_gw.py --env robodesk --task {task}{cd}
     (2M samples: 11 h of collection on one core with --render-quality fast, 190 h faithful; then

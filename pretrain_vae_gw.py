@@ -84,7 +84,7 @@ class Args:
     cpu_preset: bool = False
     """settings sized for a 2-core CPU (docs/pretrain_vae_gw.md, "Results at a CPU scale"): Simple Shapes
     in about 10 minutes; RoboDesk one shared GW for the five scripted tasks (push_red and push_blue left
-    out, zero-shot) from fast images, in about 64 minutes; flags left at their default take the preset's
+    out, zero-shot) from fast images, in about 70 minutes; flags left at their default take the preset's
     value"""
 
     # collect

@@ -2,6 +2,8 @@
 what an agent script says when pre-trained checkpoints are missing."""
 
 import json
+import math
+import sys
 import types
 from pathlib import Path
 
@@ -16,6 +18,9 @@ import pretrain_vae_gw as P
 from envs.simple_shapes import sample_dataset
 
 BUNDLE = ROOT / "envs" / "pretrained" / "simple_shapes"
+ROBODESK = ROOT / "envs" / "pretrained" / "robodesk"
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from bundle_pretrained import held_out_figures  # noqa: E402
 
 
 def test_the_bundle_reproduces_its_recorded_held_out_figures():
@@ -50,6 +55,23 @@ def test_the_bundle_reproduces_its_recorded_held_out_figures():
     assert sum(p.stat().st_size for p in BUNDLE.iterdir()) < 10 * 2**20
 
 
+def test_the_robodesk_bundle_reproduces_its_recorded_held_out_figures_and_carries_the_task():
+    """The shipped float16 weights on the shipped held-out samples give the recorded figures, and the
+    fused z recovers the end effector and the buttons (R^2 >= 0.9) from data without push_red / push_blue."""
+    record = json.loads((ROBODESK.parent / "robodesk.json").read_text())
+    figures = held_out_figures(ROBODESK, "robodesk")
+    assert set(figures) == set(record["held_out"])
+    for key, value in record["held_out"].items():
+        if not math.isnan(value):  # a group constant over the held-out samples has no R^2
+            assert figures[key] == pytest.approx(value, rel=1e-3, abs=1e-4), key
+    for group in ("end_effector", "button_green"):
+        assert figures[f"fused_{group}_r2"] >= 0.9, group
+    assert record["render_quality"] == "fast"
+    assert "expert/push_green" in record["data"]  # labels "source/task"
+    assert not any("push_red" in k or "push_blue" in k for k in record["data"])  # zero-shot for the GW
+    assert sum(p.stat().st_size for p in ROBODESK.iterdir()) < 25 * 2**20
+
+
 def test_own_checkpoints_win_over_the_bundle_and_are_never_mixed_with_it(tmp_path, capsys):
     ck = tmp_path / "ck"
     paths = G.pretrained_paths(str(ck), "simple_shapes", {"vae.pt": None, "gw.pt": None})
@@ -61,8 +83,9 @@ def test_own_checkpoints_win_over_the_bundle_and_are_never_mixed_with_it(tmp_pat
     assert paths == {"vae.pt": ck / "simple_shapes" / "vae.pt", "gw.pt": ck / "simple_shapes" / "gw.pt"}
     given = G.pretrained_paths(str(ck), "simple_shapes", {"vae.pt": "mine.pt"})
     assert given == {"vae.pt": Path("mine.pt")}
-    assert G.pretrained_paths(str(ck), "robodesk", {"vae.pt": None}) == {"vae.pt": ck / "robodesk" / "vae.pt"}
     assert "bundled" not in capsys.readouterr().out
+    rd = G.pretrained_paths(str(ck), "robodesk", {"vae.pt": None, "gw.pt": None})
+    assert rd == {"vae.pt": ROBODESK / "vae.pt", "gw.pt": ROBODESK / "gw.pt"}
 
 
 def test_a_fresh_clone_trains_on_the_bundle(tmp_path):
@@ -76,8 +99,11 @@ def test_a_fresh_clone_trains_on_the_bundle(tmp_path):
 
 @pytest.mark.parametrize("script", ["gw_dreamer.py", "dreamer_baseline.py"])
 def test_a_missing_robodesk_gw_gives_the_whole_pipeline(tmp_path, script):
+    """With a VAE path of one's own that does not exist, the bundle is not used and the message gives
+    every stage of the RoboDesk pipeline with the user's folder."""
     extra = ["--obs", "vae"] if script == "dreamer_baseline.py" else []
-    out = run_cli(script, tmp_path, "--env", "robodesk", "--checkpoint-dir", "mine", *extra)
+    mine = ["--checkpoint-dir", "mine", "--vae-checkpoint", "mine/robodesk/vae.pt"]
+    out = run_cli(script, tmp_path, "--env", "robodesk", *mine, *extra)
     assert out.returncode == 2
     msg = out.stderr
     assert f"no vae checkpoint at {'mine/robodesk/vae.pt'}" in msg
