@@ -206,7 +206,7 @@ TABLE = {
         criterion=0.70,
     ),
 }
-# --cpu-preset on RoboDesk: 200,000 frames in about 2.6 to 2.9 hours on one core (docs/gw_dreamer.md).
+# --cpu-preset on RoboDesk: 200,000 frames in about 80 min on one core beside another run (docs/gw_dreamer.md)
 # An evaluation's 10 episodes are 20,000 frames of acting, so the preset evaluates every 100,000.
 CPU_TABLE = {"robodesk": dict(total_steps=200_000, batch_size=16, batch_length=64, eval_every=100_000)}
 TAG = "gw_dreamer"  # the prefix of every line this script prints
