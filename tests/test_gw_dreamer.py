@@ -569,3 +569,97 @@ def test_step_success_counts_the_final_step_of_an_episode_that_auto_reset():
     envs.close()
     assert [c.tolist() for c in counts] == [[1, 1], [0, 0], [1, 1]]  # steps 1, 2, 3 (the last one resets)
     assert G.step_success({}, 3).tolist() == [0, 0, 0]  # Simple Shapes: no success flag
+
+
+def test_world_model_loss_targets_weights_and_masks_against_a_plain_loop():
+    """A stub world model whose h accumulates z (h_{t+1} = h_t * (1 - first_t) + z_t) and whose heads read
+    h directly, against the loss written out step by step: h_{t+1} predicts z_{t+1}, the reward r_t and
+    done d_t stored with the transition t -> t+1, nothing is predicted out of an episode's last entry,
+    and the terms weigh coef_z, coef_r, coef_d. Fails if a target is shifted by one step, the mask or a
+    reset is dropped, or two coefficients are swapped."""
+
+    class Stub:
+        hidden = 2
+
+        def step(self, h, z, a):
+            return h + z + 0 * a.sum(-1, keepdim=True)
+
+        def heads(self, h):
+            return h, h[..., 0], h[..., 1]
+
+    reward_dec = SimpleNamespace(loss=lambda out, target: (out - target) ** 2)
+    g = torch.Generator().manual_seed(0)
+    B, T1 = 2, 5
+    batch = {
+        "z": torch.randn(B, T1, 2, generator=g),
+        "a": torch.randn(B, T1, 3, generator=g),
+        "r": torch.randn(B, T1, generator=g),
+        "d": torch.rand(B, T1, generator=g).round(),
+        "first": torch.tensor([[1.0, 0, 0, 1, 0], [0, 0, 1, 0, 0]]),
+        "last": torch.tensor([[0.0, 0, 1, 0, 0], [0, 1, 0, 0, 0]]),
+    }
+    args = SimpleNamespace(wm_z_coef=10.0, wm_reward_coef=2.0, wm_done_coef=0.5)
+    loss, terms, h_entry, valid = G.world_model_loss(Stub(), reward_dec, batch, args)
+    lz = lr = ld = n = 0.0
+    for b in range(B):
+        h = torch.zeros(2)
+        for t in range(T1 - 1):
+            h = h * (1 - batch["first"][b, t]) + batch["z"][b, t]
+            if batch["last"][b, t]:
+                continue
+            n += 1
+            lz += ((h - batch["z"][b, t + 1]) ** 2).sum()
+            lr += (h[0] - batch["r"][b, t]) ** 2
+            ld += F.binary_cross_entropy_with_logits(h[1], batch["d"][b, t])
+    assert n == 6 and valid.sum() == n
+    for key, want in (("loss_z", lz / n), ("loss_r", lr / n), ("loss_d", ld / n)):
+        assert terms[key].item() == pytest.approx(float(want), rel=1e-5), key
+    assert loss.item() == pytest.approx(float(10 * lz / n + 2 * lr / n + 0.5 * ld / n), rel=1e-5)
+    assert h_entry.shape == (B, T1, 2) and (h_entry[0, 0] == 0).all()  # an episode starts from h = 0
+
+
+def test_return_scale_is_debiased_from_the_first_update():
+    """S_k = EMA_k(P95 - P5) / (1 - decay^k). Fails without the bias correction or with the quantiles
+    swapped."""
+    scale = G.ReturnScale(decay=0.99)
+    r1, r2 = torch.linspace(0, 10, 101), torch.linspace(0, 20, 101)  # P95 - P5: 9 and 18
+    assert scale.update(r1).item() == pytest.approx(9.0)
+    ema = 0.99 * 0.01 * 9 + 0.01 * 18
+    assert scale.update(r2).item() == pytest.approx(ema / (1 - 0.99**2))
+
+
+def test_actor_critic_loss_against_the_formulas_written_out():
+    """A stub agent with one-bin critics (value = logit; slow critic = 2 x critic) and a given log-prob /
+    entropy, on a dream with known rewards and continuations: the actor loss is
+    -mean(w (logp adv + eta H)) with w the cumulative product of the continuations before each step times
+    the start weight, adv = (R - v) / max(1, S); the critic loss mean(w ((v - R)^2 + (v - v_slow)^2)).
+    Fails if the continuation weights are not cumulative, the entropy bonus has the wrong sign, the
+    advantage is not normalised or the slow critic's target is dropped."""
+    H, N = 3, 2
+    g = torch.Generator().manual_seed(1)
+    feats = torch.randn(H + 1, N, 1, generator=g)
+    logp = torch.randn(H, N, generator=g, requires_grad=True)
+    entropy = torch.full((H, N), 0.7)
+    agent = SimpleNamespace(
+        twohot=SimpleNamespace(mean=lambda x: x[..., 0], loss=lambda x, t: (x[..., 0] - t) ** 2),
+        critic=lambda f: f,
+        slow_critic=lambda f: 2 * f,
+        actor=SimpleNamespace(log_prob=lambda f, a: (logp, entropy)),
+        return_scale=G.ReturnScale(),
+    )
+    rewards = torch.tensor([[1.0, 3.0], [0.5, -2.0], [4.0, 0.0]])
+    conts = torch.tensor([[0.5, 0.5], [0.8, 1.0], [0.0, 1.0]])
+    start_w = torch.tensor([1.0, 0.0])
+    dream = G.Dream(feats, torch.zeros(H, N, 5), rewards, conts)
+    loss_a, loss_c, stats = G.actor_critic_loss(agent, dream, start_w, gamma=0.9, lam=0.8, entropy_coef=0.1)
+    v = feats[..., 0]
+    R = G.lambda_returns(rewards, conts, v, 0.9, 0.8)
+    w = torch.stack([torch.ones(N), conts[0], conts[0] * conts[1]]) * start_w
+    S = G.ReturnScale().update(R)
+    assert S.item() > 1.5  # the normalisation is exercised
+    adv = (R - v[:-1]) / max(1.0, S.item())
+    want_a = -(w * (logp * adv + 0.1 * entropy)).mean()
+    want_c = (w * ((v[:-1] - R) ** 2 + (v[:-1] - 2 * v[:-1]) ** 2)).mean()
+    assert loss_a.item() == pytest.approx(want_a.item(), rel=1e-5)
+    assert loss_c.item() == pytest.approx(want_c.item(), rel=1e-5)
+    assert stats["entropy"].item() == pytest.approx(0.7)
