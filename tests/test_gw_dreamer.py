@@ -663,3 +663,21 @@ def test_actor_critic_loss_against_the_formulas_written_out():
     assert loss_a.item() == pytest.approx(want_a.item(), rel=1e-5)
     assert loss_c.item() == pytest.approx(want_c.item(), rel=1e-5)
     assert stats["entropy"].item() == pytest.approx(0.7)
+
+
+def test_eval_only_encodes_with_the_fusion_weights_of_the_dropped_modality(ss_run, pretrained, monkeypatch):
+    """Every observation of an --eval-only run goes through the GW with the weights of --drop (vision:
+    alpha_v 0, attr: alpha_attr 0). Fails if the evaluation ignores --drop."""
+    _, _, agent = ss_run
+    seen = []
+    real = G.FrozenEncoder.forward
+
+    def spy(self, obs, alpha_v=0.5, alpha_attr=0.5):
+        seen.append((alpha_v, alpha_attr))
+        return real(self, obs, alpha_v, alpha_attr)
+
+    monkeypatch.setattr(G.FrozenEncoder, "forward", spy)
+    for drop in ("vision", "attr", "none"):
+        seen.clear()
+        G.main(ss_args(pretrained, eval_only=True, checkpoint=str(agent), drop=drop, eval_episodes=2))
+        assert len(seen) >= 100 and set(seen) == {G.FUSION[drop]}, drop  # 2 episodes of 100 steps
