@@ -336,3 +336,15 @@ def test_robodesk_attribute_scale_floors_still_dimensions_and_widens_spiking_one
     assert np.abs((attr[:, 1] - mean[1]) / scale[1]).max() <= 3.001
     zeros, ones = P.normaliser(attr[:, :11], "simple_shapes")
     assert not zeros.any() and (ones == 1).all()
+
+
+def test_fusion_weights_are_a_tempered_softmax_of_uniform_noise():
+    """alpha_v = exp(u_v / T) / (exp(u_v / T) + exp(u_attr / T)) = sigmoid((u_v - u_attr) / T) for the
+    same uniform draws. Fails if the temperature multiplies instead of dividing, or alpha_attr is returned."""
+    g1, g2 = torch.Generator().manual_seed(3), torch.Generator().manual_seed(3)
+    alpha = P.fusion_weights(1000, 0.2, g1, "cpu")
+    u = torch.rand(1000, 2, generator=g2)
+    assert torch.allclose(alpha[:, 0], torch.sigmoid((u[:, 0] - u[:, 1]) / 0.2), atol=1e-6)
+    assert alpha.shape == (1000, 1) and 0 < alpha.min() and alpha.max() < 1
+    # a low temperature pushes the weights towards 0 or 1: at T = 0.2 a third lie beyond 0.9 / 0.1
+    assert 0.25 < ((alpha > 0.9) | (alpha < 0.1)).float().mean() < 0.45
