@@ -329,3 +329,44 @@ def test_ctrl_c_saves_the_run_where_it_stopped(tmp_path):
     agent = agent_path(tmp_path / "ck" / "simple_shapes", "dreamer_raw_2m_simple_shapes_s1")
     state, step = interrupt_run("dreamer_baseline.py", tmp_path, agent, *SS, str(tmp_path / "ck"), *TINY)
     assert state["updates"] == (step - 100) * 16 // (4 * 8)
+
+
+def test_kl_balancing_and_free_bits_against_autograd_of_the_plain_terms(monkeypatch):
+    """DreamerV3's KL: kl_dyn max(free, KL(sg(q) || p)) trains the prior only, kl_rep max(free, KL(q ||
+    sg(p))) the posterior only, and an entry under the free nats gives no gradient. Two entries, one far
+    above 1 nat and one under it, with every other loss term stubbed to zero. Fails if the stop-gradients
+    or the two scales are swapped, or the free bits are dropped."""
+    from types import SimpleNamespace
+
+    rssm = SimpleNamespace(classes=32, unimix=0.01)
+    rssm.probs = lambda logits: D.RSSM.probs(rssm, logits)
+    rssm.kl = lambda q, p: D.RSSM.kl(rssm, q, p)
+    g = torch.Generator().manual_seed(0)
+    prior0 = torch.randn(1, 2, 1024, generator=g)
+    post0 = prior0.clone()
+    post0[0, 0] += 3 * torch.randn(1024, generator=g)  # far from the prior: KL >> 1 nat
+    post0[0, 1] += 0.01 * torch.randn(1024, generator=g)  # close: KL << 1 nat
+    post, prior = post0.clone().requires_grad_(), prior0.clone().requires_grad_()
+    monkeypatch.setattr(D, "observe", lambda agent, batch: (None, None, post, prior))
+    monkeypatch.setattr(D, "feat_of", lambda deter, stoch: torch.zeros(1, 2, 3))
+    agent = SimpleNamespace(
+        rssm=rssm,
+        decoder=SimpleNamespace(loss=lambda feat, batch: {}),
+        twohot=SimpleNamespace(loss=lambda out, r: torch.zeros(1, 2)),
+        reward_head=lambda feat: torch.zeros(1, 2, 1),
+        cont_head=lambda feat: torch.full((1, 2, 1), 30.0),  # continue predicted surely: BCE ~ 0
+    )
+    batch = {"reward": torch.zeros(1, 2), "terminal": torch.zeros(1, 2)}
+    args = SimpleNamespace(kl_free=1.0, kl_dyn=0.5, kl_rep=0.1)
+    total, terms, _ = D.world_model_loss(agent, batch, args)
+    total.backward()
+    kl = rssm.kl(post0, prior0)
+    assert kl[0, 0] > 5 and kl[0, 1] < 0.1
+    assert total.item() == pytest.approx(((0.5 + 0.1) * kl.clamp(min=1.0)).mean().item(), rel=1e-4)
+    p_leaf, q_leaf = prior0.clone().requires_grad_(), post0.clone().requires_grad_()
+    (0.5 * rssm.kl(post0, p_leaf)[0, 0] / 2).backward()
+    (0.1 * rssm.kl(q_leaf, prior0)[0, 0] / 2).backward()
+    assert torch.allclose(prior.grad, p_leaf.grad, atol=1e-6) and torch.allclose(
+        post.grad, q_leaf.grad, atol=1e-6
+    )
+    assert (prior.grad[0, 1] == 0).all() and (post.grad[0, 1] == 0).all()  # under the free nats
