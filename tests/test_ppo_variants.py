@@ -182,3 +182,33 @@ def test_errors_are_explained(pretrained, pretrained_robodesk, tmp_path):
         PPO.main(PPO.Args(env="robodesk", task="fly", variant="raw"))
     with pytest.raises(PPO.UsageError, match="must fit in one rollout"):
         PPO.main(PPO.Args(variant="raw", num_steps=8, minibatch_size=512))
+
+
+def test_ppo_loss_clips_the_surrogate_and_the_value_by_hand():
+    """Four samples with ratios 1.5, 0.5, 1.1, 0.9 and advantages +1, -1, -1, +1 (not normalised): the
+    surrogate takes min(r A, clip(r) A) per sample (1.2, -0.8, -1.1, 0.9), the value loss
+    0.5 max((v - R)^2, (v_clip - R)^2) with v_clip = v_old + clip(v - v_old, +-0.2). Fails if the clip
+    range, the min / max or the value clipping is changed."""
+    from types import SimpleNamespace
+
+    ratio = torch.tensor([1.5, 0.5, 1.1, 0.9])
+    newvalue = torch.tensor([1.0, 0.0, 2.0, -1.0])
+    entropy = torch.tensor([0.3, 0.3, 0.3, 0.3])
+    agent = SimpleNamespace(get_action_and_value=lambda obs, a: (None, ratio.log(), entropy, newvalue))
+    mb = {
+        "obs": None,
+        "actions": None,
+        "logprobs": torch.zeros(4),
+        "advantages": torch.tensor([1.0, -1.0, -1.0, 1.0]),
+        "values": torch.tensor([0.5, 0.5, 2.1, -1.0]),
+        "returns": torch.tensor([1.2, 1.0, 0.0, -1.0]),
+    }
+    args = SimpleNamespace(clip_coef=0.2, norm_adv=False, clip_vloss=True, ent_coef=0.01, vf_coef=0.5)
+    loss, terms = PPO.ppo_loss(agent, mb, args)
+    pg = -(1.2 - 0.8 - 1.1 + 0.9) / 4
+    # values: v_clip = 0.7, 0.3, 2.0, -1.0; squared errors max((v-R)^2, (vc-R)^2) = 0.25, 1.0, 4.0, 0.0
+    v = 0.5 * (0.25 + 1.0 + 4.0 + 0.0) / 4
+    assert terms["policy_loss"].item() == pytest.approx(pg)
+    assert terms["value_loss"].item() == pytest.approx(v)
+    assert loss.item() == pytest.approx(pg - 0.01 * 0.3 + 0.5 * v)
+    assert terms["clipfrac"].item() == pytest.approx(0.5)
