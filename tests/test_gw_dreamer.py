@@ -681,3 +681,24 @@ def test_eval_only_encodes_with_the_fusion_weights_of_the_dropped_modality(ss_ru
         seen.clear()
         G.main(ss_args(pretrained, eval_only=True, checkpoint=str(agent), drop=drop, eval_episodes=2))
         assert len(seen) >= 100 and set(seen) == {G.FUSION[drop]}, drop  # 2 episodes of 100 steps
+
+
+def test_the_continuous_actor_is_a_bounded_gaussian():
+    """RoboDesk's actor: mean tanh(m), std 0.9 sigmoid(s + 2) + 0.1 in [0.1, 1], log-prob and entropy of
+    the diagonal Gaussian summed over the 5 action dimensions, samples clipped to [-1, 1]. Fails if the
+    std leaves its range or a dimension is not summed."""
+    torch.manual_seed(0)
+    actor = G.Actor(hidden=8, n_actions=5, depth=1, discrete=False, width=16)
+    nn.init.normal_(actor.net[-1].weight, std=10.0)  # extreme outputs reach both std bounds
+    h = torch.randn(256, 8)
+    m, s = actor.net(h).chunk(2, -1)
+    mean, std = torch.tanh(m), 0.9 * torch.sigmoid(s + 2.0) + 0.1
+    assert std.min() < 0.11 and std.max() > 0.99 and ((std >= 0.1) & (std <= 1.0)).all()
+    a = torch.rand(256, 5) * 2 - 1
+    logp, ent = actor.log_prob(h, a)
+    want = (-((a - mean) ** 2) / (2 * std**2) - std.log() - 0.5 * math.log(2 * math.pi)).sum(-1)
+    assert torch.allclose(logp, want, atol=1e-4)
+    assert torch.allclose(ent, (0.5 * math.log(2 * math.pi * math.e) + std.log()).sum(-1), atol=1e-5)
+    acts = actor.act(h)
+    assert acts.shape == (256, 5) and acts.abs().max() <= 1.0 and (acts.abs() == 1.0).any()  # clipped
+    assert torch.allclose(actor.act(h, mode=True), mean)
