@@ -702,3 +702,35 @@ def test_the_continuous_actor_is_a_bounded_gaussian():
     acts = actor.act(h)
     assert acts.shape == (256, 5) and acts.abs().max() <= 1.0 and (acts.abs() == 1.0).any()  # clipped
     assert torch.allclose(actor.act(h, mode=True), mean)
+
+
+def test_train_update_moves_the_slow_critic_by_one_minus_its_decay_toward_the_critic():
+    """After the critic's step, slow <- slow + (1 - decay) (critic - slow), with stub losses. Fails if the
+    EMA uses decay instead of 1 - decay, or reads the critic before its step."""
+    torch.manual_seed(0)
+    agent = SimpleNamespace(twohot=G.TwoHot(), reward_dec=None)
+    for part in ("wm", "actor", "critic", "slow_critic"):
+        setattr(agent, part, nn.Linear(2, 2))
+    B, T = 2, 3
+    replay = SimpleNamespace(
+        sample=lambda b, t: {
+            "z": np.zeros((b, t + 1, 2), np.float32),
+            "last": np.zeros((b, t + 1), np.float32),
+        }
+    )
+    losses = {
+        "wm": lambda wm, rd, batch, args: ((wm.weight**2).sum(), {}, torch.zeros(B, T + 1, 2), None),
+        "ac": lambda ag, h0, z0, w, args: (
+            (ag.actor.weight**2).sum(),
+            ((ag.critic.weight - 1) ** 2).sum(),
+            {},
+        ),
+    }
+    opts = {k: torch.optim.SGD(getattr(agent, k).parameters(), lr=0.1) for k in ("wm", "actor", "critic")}
+    args = SimpleNamespace(batch_size=B, batch_length=T, imag_from="last", slow_critic_decay=0.98)
+    slow0 = [p.detach().clone() for p in agent.slow_critic.parameters()]
+    critic0 = agent.critic.weight.detach().clone()
+    G.train_update(agent, opts, replay, args, losses=losses)
+    assert not torch.equal(agent.critic.weight, critic0)  # the critic stepped first
+    for p_slow, s0, p in zip(agent.slow_critic.parameters(), slow0, agent.critic.parameters(), strict=True):
+        assert torch.allclose(p_slow, s0 + 0.02 * (p.detach() - s0), atol=1e-7)
