@@ -1393,7 +1393,7 @@ def start_run(args: Args, encoder: FrozenEncoder, agent: Agent, paths: dict, age
         print(
             f"[{TAG}] the paper's sizes on a CPU: about {PAPER_SIZE_CPU_S} s per update on one core, so "
             f"{args.total_steps:,} frames take about {hours:.0f} h; --cpu-preset trains 200,000 frames in "
-            "about 3 h (docs/gw_dreamer.md)"
+            "about 80 min beside another run (docs/gw_dreamer.md)"
         )
     return run
 
