@@ -131,6 +131,10 @@ class Args:
     """EMA decay of the slow critic that regularises the critic (DreamerV3)"""
     return_norm_decay: float = 0.99
     """EMA decay of the return scale max(1, P95 - P5) (DreamerV3)"""
+    actor_grad: Literal["auto", "reinforce", "dynamics"] = "auto"
+    """actor gradient: REINFORCE, or backpropagation of the lambda-returns through the dreamt transitions
+    into the actions (the world model's weights get no gradient from it); auto: REINFORCE for discrete
+    actions (Simple Shapes), dynamics for continuous ones (RoboDesk), as DreamerV3 (docs/paper_readings.md)"""
 
     # environments
     render_quality: Literal["faithful", "fast"] | None = None
@@ -522,7 +526,7 @@ class Actor(nn.Module):
         if self.discrete:
             idx = d.probs.argmax(-1) if mode else d.sample()
             return F.one_hot(idx, self.n).float()
-        return (d.mean if mode else d.sample()).clamp(-1, 1)
+        return (d.mean if mode else d.rsample()).clamp(-1, 1)  # rsample: differentiable in dreams
 
     def log_prob(self, h: torch.Tensor, a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         d = self.dist(h)
@@ -718,12 +722,12 @@ class Dream(NamedTuple):
     conts: torch.Tensor
 
 
-def imagine(agent, h0: torch.Tensor, z0: torch.Tensor, horizon: int) -> Dream:
+def imagine(agent, h0: torch.Tensor, z0: torch.Tensor, horizon: int, grad: bool = False) -> Dream:
     """Dream ``horizon`` steps from replayed states (h_t, z_t): the real z_t is given only at the first
-    step, then the world model's own predictions (paper Figure 3 (2)). No gradient flows through the
-    world model or the sampled actions."""
+    step, then the world model's own predictions (paper Figure 3 (2)). With ``grad`` the rollout is
+    differentiable in the actions (dynamics backpropagation); without, no gradient flows through it."""
     wm = agent.wm
-    with torch.no_grad():
+    with torch.set_grad_enabled(grad):
         feats, actions, rewards, conts = [agent.features(h0, z0)], [], [], []
         h, z = h0, z0
         for _ in range(horizon):
@@ -746,36 +750,54 @@ def lambda_returns(rewards, conts, values, gamma: float, lam: float) -> torch.Te
     return torch.stack(out[::-1])
 
 
-def actor_critic_loss(agent, dream: Dream, start_w, *, gamma=1 - 1 / 333, lam=0.95, entropy_coef=3e-3):
-    """DreamerV3 actor-critic on an imagined rollout: REINFORCE with advantages normalised by the return
-    scale and an entropy bonus (the paper stops gradients at the world model, so no dynamics
-    backpropagation even for continuous actions); a two-hot critic on lambda-returns regularised toward
-    its slow copy. ``start_w`` masks starts that are an episode's final observation."""
-    twohot = agent.twohot
-    logits = agent.critic(dream.feats)  # (H + 1, N, bins): one pass for the bootstrap values and the loss
+def actor_critic_loss(
+    agent, dream: Dream, start_w, *, dynamics=False, gamma=1 - 1 / 333, lam=0.95, entropy_coef=3e-3
+):
+    """DreamerV3 actor-critic on an imagined rollout, advantages normalised by the return scale, with an
+    entropy bonus. The actor's gradient is REINFORCE, or (``dynamics``) that of the normalised
+    lambda-return through the differentiable dream into the actions (DreamerV3 for continuous actions);
+    the world model is trained by L_WM alone either way (``train_update``). A two-hot critic on
+    lambda-returns regularised toward its slow copy. ``start_w`` masks starts that are an episode's final
+    observation."""
+    twohot, feats, conts = agent.twohot, dream.feats, dream.conts
+    if dynamics:  # values differentiable through the dream; the critic's own loss reads detached feats
+        values = twohot.mean(agent.critic(feats))
+        logits = agent.critic(feats[:-1].detach())
+    else:  # one critic pass serves the bootstrap values and the critic loss
+        all_logits = agent.critic(feats)
+        values, logits = twohot.mean(all_logits.detach()), all_logits[:-1]
+    returns = lambda_returns(dream.rewards, conts, values, gamma, lam)  # (H, N)
     with torch.no_grad():
-        values = twohot.mean(logits.detach())
-        returns = lambda_returns(dream.rewards, dream.conts, values, gamma, lam)  # (H, N)
         # Weight of dreamt state k: the predicted probability that the episode is still running.
-        conts = dream.conts
         w = torch.cumprod(torch.cat([torch.ones_like(conts[:1]), conts[:-1]]), 0) * start_w
         scale = agent.return_scale.update(returns)
-        adv = (returns - values[:-1]) / scale.clamp(min=1.0).to(returns.dtype)  # float64 state, float32 math
-        slow_target = twohot.mean(agent.slow_critic(dream.feats[:-1]))
-    logp, entropy = agent.actor.log_prob(dream.feats[:-1], dream.actions)
-    loss_actor = -(w * (logp * adv + entropy_coef * entropy)).mean()
-    critic_nll = twohot.loss(logits[:-1], returns) + twohot.loss(logits[:-1], slow_target)
-    loss_critic = (w * critic_nll).mean()
-    stats = {"return_scale": scale, "imag_return": returns.mean(), "entropy": entropy.mean()}
+        norm = scale.clamp(min=1.0).to(returns.dtype)  # float64 state, float32 math
+        slow_target = twohot.mean(agent.slow_critic(feats[:-1].detach()))
+    logp, entropy = agent.actor.log_prob(feats[:-1].detach(), dream.actions.detach())
+    if dynamics:
+        objective = (returns - values[:-1].detach()) / norm
+    else:
+        objective = logp * ((returns - values[:-1]) / norm).detach()
+    loss_actor = -(w * (objective + entropy_coef * entropy)).mean()
+    target = returns.detach()
+    loss_critic = (w * (twohot.loss(logits, target) + twohot.loss(logits, slow_target))).mean()
+    stats = {"return_scale": scale, "imag_return": target.mean(), "entropy": entropy.detach().mean()}
     return loss_actor, loss_critic, stats
 
 
 def dream_loss(agent: Agent, h0: torch.Tensor, z0: torch.Tensor, start_w: torch.Tensor, args: Args):
     """The actor-critic's part of an update: dreams from (h0, z0), then their loss (Algorithm 1, lines
     12-14)."""
-    dream = imagine(agent, h0, z0, args.imag_horizon)
+    dynamics = actor_grad(args) == "dynamics"
+    dream = imagine(agent, h0, z0, args.imag_horizon, grad=dynamics)
     return actor_critic_loss(
-        agent, dream, start_w, gamma=args.gamma, lam=args.lam, entropy_coef=args.entropy_coef
+        agent,
+        dream,
+        start_w,
+        dynamics=dynamics,
+        gamma=args.gamma,
+        lam=args.lam,
+        entropy_coef=args.entropy_coef,
     )
 
 
@@ -787,6 +809,9 @@ def compiled_losses(device, backend: str = "inductor") -> dict:
     steps stay eager; nothing in the compiled parts reads a value back to the host. (``backend``: the
     tests also use "aot_eager", the same graphs without generated kernels.)"""
     mode = "reduce-overhead" if str(device).startswith("cuda") else None
+    # The actor's and the critic's losses come out of one compiled graph whose backward runs once per
+    # loss (each reaches only its own network), so that graph keeps its buffers between the two calls.
+    torch._functorch.config.donated_buffer = False
     return {k: torch.compile(fn, mode=mode, backend=backend) for k, fn in EAGER.items()}
 
 
@@ -815,7 +840,10 @@ def train_update(
         raise FloatingPointError(f"non-finite actor-critic loss at env step {env_step:,}")
     opts["actor"].zero_grad(set_to_none=True)
     opts["critic"].zero_grad(set_to_none=True)
-    (loss_actor + loss_critic).backward()
+    # Each loss reaches only its own network (the world model is trained by L_WM alone); the first call
+    # keeps the graph's buffers for the second (one graph when compiled).
+    loss_actor.backward(inputs=list(agent.actor.parameters()), retain_graph=True)
+    loss_critic.backward(inputs=list(agent.critic.parameters()))
     nn.utils.clip_grad_norm_(agent.actor.parameters(), 100.0)
     nn.utils.clip_grad_norm_(agent.critic.parameters(), 100.0)
     opts["actor"].step()
@@ -1255,8 +1283,16 @@ def schedule(args: Args) -> str:
         f"schedule: one update per {args.train_ratio:g} agent steps (train ratio) after "
         f"{args.learning_starts:,} random steps; world model on {args.batch_size} x {args.batch_length} "
         f"replayed steps; {starts:,} dreams of {args.imag_horizon} steps from {where} (--imag-from "
-        f"{args.imag_from}); {args.total_steps:,} env steps, counted in {unit}"
+        f"{args.imag_from}); actor gradient {actor_grad(args)}; {args.total_steps:,} env steps, counted "
+        f"in {unit}"
     )
+
+
+def actor_grad(args: Args) -> str:
+    """The actor's gradient estimator: --actor-grad, or by the action space (auto, as DreamerV3)."""
+    if args.actor_grad != "auto":
+        return args.actor_grad
+    return "reinforce" if args.env == "simple_shapes" else "dynamics"
 
 
 # --------------------------------------------------------------------------------------------------

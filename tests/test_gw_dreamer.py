@@ -1,6 +1,8 @@
 """gw_dreamer.py: CLI runs on both envs, resume, modality ablation, world-model learning, imagination,
 stop-gradients, two-hot, lambda-returns, the actor-critic on a toy dream, errors."""
 
+import copy
+import dataclasses
 import math
 import shutil
 from types import SimpleNamespace
@@ -447,9 +449,11 @@ def linears(net: nn.Module) -> list[tuple[int, int]]:
 @pytest.mark.parametrize("imag_from", ["last", "all"])
 def test_update_flops_match_the_closed_form_count_of_the_layers(env, imag_from):
     """The FLOPs that count_flops reports for one update (what charts/train_flops sums) agree within 10%
-    with a count made by hand from the layer sizes, for both readings of where dreams start."""
+    with a count made by hand from the layer sizes, for both readings of where dreams start (REINFORCE
+    actor: the dream is run without gradients)."""
     B, T, H = 3, 4, 5
-    args = G.Args(env=env, batch_size=B, batch_length=T, imag_horizon=H, imag_from=imag_from).resolve()
+    args = G.Args(env=env, batch_size=B, batch_length=T, imag_horizon=H, imag_from=imag_from)
+    args = dataclasses.replace(args, actor_grad="reinforce").resolve()
     z_dim, n_act = G.ENV_SPECS[env]["z"], G.SIZES[env]["actions"]
     torch.manual_seed(0)
     agent = G.Agent(env, z_dim, "twohot")
@@ -734,3 +738,64 @@ def test_train_update_moves_the_slow_critic_by_one_minus_its_decay_toward_the_cr
     assert not torch.equal(agent.critic.weight, critic0)  # the critic stepped first
     for p_slow, s0, p in zip(agent.slow_critic.parameters(), slow0, agent.critic.parameters(), strict=True):
         assert torch.allclose(p_slow, s0 + 0.02 * (p.detach() - s0), atol=1e-7)
+
+
+def continuous_agent() -> tuple[G.Agent, torch.Tensor, torch.Tensor]:
+    """A small RoboDesk agent in float64 (CPU sizes) with six dream starts."""
+    torch.manual_seed(0)
+    agent = G.Agent("robodesk", 76, "twohot", cpu_preset=True).double()
+    h0 = torch.randn(6, agent.wm.hidden, dtype=torch.float64)
+    return agent, h0, torch.rand(6, 76, dtype=torch.float64) * 2 - 1
+
+
+def test_dynamics_backprop_gives_the_derivative_of_the_dreamt_return_in_the_actor_weights():
+    """With --actor-grad dynamics (RoboDesk's default) the actor's gradient is the derivative of its loss,
+    -mean(w (R - v) / S), through the dream: it matches central finite differences of that loss in a
+    weight of the actor's mean (same noise, scale fixed at 1; constant critic and continuation, so that
+    the dreamt rewards carry the actions' effect). Fails if the dream runs under no_grad, if
+    actions are drawn without reparameterisation, or if the REINFORCE estimator is used instead."""
+    agent, h0, z0 = continuous_agent()
+    agent.return_scale.update = lambda r: torch.ones(1, dtype=torch.float64)
+    agent.twohot.loss = lambda logits, y: logits[..., 0] * 0  # the critic's loss plays no part here
+    with torch.no_grad():  # constant critic and done head: v(s_k) and the weights w do not move with a
+        agent.critic.net[-1].weight.zero_()
+        agent.wm.done_head[-1].weight.zero_()
+    weight = agent.actor.net[-1].weight  # row 0: the mean of action 0
+
+    def loss(grad: bool) -> torch.Tensor:
+        torch.manual_seed(5)
+        dream = G.imagine(agent, h0, z0, 6, grad=grad)
+        return G.actor_critic_loss(agent, dream, torch.ones(6), dynamics=True, entropy_coef=0.0)[0]
+
+    (grad,) = torch.autograd.grad(loss(True), weight)
+    assert all(p.grad is None for p in agent.wm.parameters())
+    for j in range(3):
+        with torch.no_grad():
+            weight[0, j] += 1e-5
+            up = loss(False).item()
+            weight[0, j] -= 2e-5
+            down = loss(False).item()
+            weight[0, j] += 1e-5
+        assert grad[0, j].item() == pytest.approx((up - down) / 2e-5, rel=1e-3, abs=1e-9)
+    assert grad[0].abs().max() > 1e-6  # the return moves with the action
+
+
+def test_train_update_leaves_the_world_model_to_its_own_loss_under_dynamics_backprop():
+    """The dream is differentiable in the actions, but only L_WM trains the world model: after an update
+    its gradients are those of L_WM alone on the same batch, and the critic's those of the critic loss.
+    Fails if the two actor-critic losses are back-propagated together into every network."""
+    agent, _, _ = continuous_agent()
+    agent.float()
+    args = dataclasses.replace(G.Args(env="robodesk", batch_size=3, batch_length=5), imag_horizon=4)
+    args = args.resolve()
+    replay = G.Replay(100, 1, 76, 5, 0)
+    for t in range(30):
+        replay.add(
+            [0], np.random.default_rng(t).uniform(-1, 1, (1, 76)), np.zeros((1, 5)), [1.0], [0], [t == 0], [0]
+        )
+    twin, replay_twin = copy.deepcopy(agent), copy.deepcopy(replay)
+    G.train_update(agent, G.make_optimizers(agent, args), replay, args)
+    batch = {k: torch.as_tensor(v) for k, v in replay_twin.sample(3, 5).items()}
+    G.world_model_loss(twin.wm, twin.reward_dec, batch, args)[0].backward()
+    for p, q in zip(agent.wm.parameters(), twin.wm.parameters(), strict=True):
+        assert torch.allclose(p.grad, q.grad, atol=1e-6)

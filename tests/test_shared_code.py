@@ -40,7 +40,8 @@ SHARED = {
     "LoopState": (GW, DREAMER),
     # The GW-Dreamer world model and actor-critic (frozen GW and end-to-end variants)
     **dict.fromkeys(
-        "Actor Critic RewardDecoder WorldModel SIZES dream_starts schedule world_model_loss actor_critic_loss"
+        "Actor Critic RewardDecoder WorldModel SIZES dream_starts schedule actor_grad world_model_loss"
+        " actor_critic_loss dream_loss"
         " updates_due mlp final_observations imagine run_name finish".split(),
         (GW, E2E),
     ),
