@@ -246,3 +246,78 @@ def test_async_vector_env_runs_the_port():
     obs, rew, term, trunc, info = vec.step(np.zeros((2, 5), dtype=np.float32))
     assert rew.shape == (2,) and not term.any() and np.all(np.isfinite(obs["attr"]))
     vec.close()
+
+
+def plain_dense_reward(task: str, ee, pos: dict, ref: dict, joints: dict) -> float:
+    """The original RoboDesk's dense rewards written out from plain numbers: end-effector position ``ee``,
+    object positions ``pos`` now and ``ref`` at reset, and joint positions ``joints``."""
+
+    def near(p):  # 1 at the end effector, 0 from 1 m away
+        return min(max(1 - np.linalg.norm(ee - p), 0.0), 1.0)
+
+    def moved(o):
+        return np.linalg.norm(pos[o] - ref[o]) / 5.0
+
+    others = {o: [p for p in ("flat_block", "upright_block", "ball") if p != o] for o in pos}
+    if task == "open_drawer":
+        r = 0.75 * abs(joints["drawer"]) / 0.3 + 0.25 * near(joints["drawer_handle"])
+    elif task == "push_green":
+        r = 0.25 * (joints["green_light"] < -0.00453) + 0.75 * near(joints["green_button"])
+    elif task == "stack":
+        diff = np.linalg.norm(np.array([0, 0, 0.0377804]) - (pos["upright_block"] - pos["flat_block"]))
+        r = -diff + near(pos["upright_block"])
+    elif task == "upright_block_off_table":
+        o = "upright_block"
+        progress = 0.8 * (1 - pos[o][2] / ref[o][2]) + sum(0.1 * (1 - moved(p)) for p in others[o])
+        r = 0.75 * min(max(progress, 0), 1) + 0.25 * near(pos[o])
+    elif task == "flat_block_in_bin":
+        x, y, z = pos["flat_block"]
+        r = 0.5 * near(pos["flat_block"]) + 0.5 * (0.28 < x < 0.52 and 0.38 < y < 0.62 and 0 < z < 0.4)
+    elif task == "ball_in_shelf":
+        p = pos["ball"]
+        success = p[0] > 0.2 and p[1] > 1.0
+        in_shelf = 0.33 * near(p) + 0.33 * (1 - np.linalg.norm(np.array([0.4, 1.1]) - p[:2])) + 0.34 * success
+        r = 0.5 * in_shelf + sum(0.25 * (1 - moved(o)) for o in others["ball"])
+    elif task == "lift_upright_block":
+        z = pos["upright_block"][2]
+        r = 0.85 * min(max((z - ref["upright_block"][2]) * 10, 0), 1) + 0.15 * near(pos["upright_block"])
+    return float(min(max(r, 0.0), 1.0))
+
+
+@pytest.mark.parametrize(
+    "task, moves",
+    [
+        ("open_drawer", {"drawer_joint": -0.12}),
+        ("push_green", {"green_light": -0.005}),
+        ("push_green", {}),
+        ("stack", {"upright_block": (0.1, 0.75, 0.8)}),
+        ("upright_block_off_table", {"upright_block": (0.5, 0.6, 0.6), "ball": (0.0, 0.7, 0.8)}),
+        ("flat_block_in_bin", {"flat_block": (0.4, 0.5, 0.2)}),
+        ("flat_block_in_bin", {"flat_block": (0.1, 0.7, 0.76)}),
+        ("ball_in_shelf", {"ball": (0.3, 1.05, 0.9), "flat_block": (0.0, 0.6, 0.76)}),
+        ("lift_upright_block", {"upright_block": (None, None, 0.83)}),
+    ],
+)
+@pytest.mark.parametrize("frozen", [False, True])
+def test_dense_reward_of_each_task_family_against_its_formula(task, moves, frozen):
+    """Each family of dense rewards (drawer, button, stack, off table, in bin, in shelf, lift) on a
+    hand-set state equals the original's formula computed from the positions, with the original's live
+    reference positions (the objects' current ones) and with references frozen at reset. Fails if a
+    weight, a threshold or a reference position changes (the slide and lift_ball are tested above)."""
+    env = RoboDeskEnv(render_images=False, frozen_reference=frozen)
+    env.task = task
+    env.reset(seed=2)
+    m, d = env.model, env.data
+    at_reset = {o: d.xpos[m.body(o).id].copy() for o in ("flat_block", "upright_block", "ball")}
+    with_objects(env, task, seed=2, **moves)
+    pos = {o: d.xpos[m.body(o).id].copy() for o in at_reset}
+    ref = at_reset if frozen else pos
+    joints = {
+        "drawer": d.qpos[m.joint("drawer_joint").qposadr[0]],
+        "drawer_handle": d.geom_xpos[m.geom("drawer_handle").id].copy(),
+        "green_light": d.qpos[m.joint("green_light").qposadr[0]],
+        "green_button": d.xpos[m.body("green_button").id].copy(),
+    }
+    want = plain_dense_reward(task, d.site_xpos[env._ee_site].copy(), pos, ref, joints)
+    assert env.task_reward("dense") == pytest.approx(want, abs=1e-9)
+    assert 0.0 < want < 1.0 or task == "flat_block_in_bin"  # the state tests more than a clip
