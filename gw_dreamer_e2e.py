@@ -143,10 +143,9 @@ class Args:
     """discount (DreamerV3)"""
     lam: float = 0.95
     """lambda of the lambda-returns"""
-    entropy_coef: float = 3e-3
-    """actor entropy regulariser. The paper gives none; DreamerV3's 3e-4 goes with its actor rate of 3e-5,
-    and the paper's rate is 10x that (3e-4), so the bonus keeps DreamerV3's ratio to it: with 3e-4 the
-    policy collapses onto one or two actions in 2 of 4 Simple Shapes runs (docs/experiments.md)"""
+    entropy_coef: float | None = None
+    """actor entropy regulariser, which the paper does not give (default 3e-3 Simple Shapes, 3e-4
+    RoboDesk: DreamerV3's value, for its continuous actor; why they differ: docs/paper_readings.md)"""
     slow_critic_decay: float = 0.98
     """EMA decay of the slow critic that regularises the critic (DreamerV3)"""
     return_norm_decay: float = 0.99
@@ -218,6 +217,7 @@ TABLE = {
         batch_length=32,
         train_ratio=4.0,
         wm_lr=1e-3,
+        entropy_coef=3e-3,
         eval_every=5_000,
         gw_lr_start=3e-3,
         gw_lr_max=1e-2,
@@ -231,6 +231,7 @@ TABLE = {
         batch_length=128,
         train_ratio=2.0,
         wm_lr=3e-4,
+        entropy_coef=3e-4,
         eval_every=50_000,
         gw_lr_start=1e-4,
         gw_lr_max=3e-4,
