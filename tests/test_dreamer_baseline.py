@@ -370,3 +370,21 @@ def test_kl_balancing_and_free_bits_against_autograd_of_the_plain_terms(monkeypa
         post.grad, q_leaf.grad, atol=1e-6
     )
     assert (prior.grad[0, 1] == 0).all() and (post.grad[0, 1] == 0).all()  # under the free nats
+
+
+def test_eval_only_feeds_every_observation_through_the_drop_it_was_given(ss_run, pretrained, monkeypatch):
+    """Every observation of an --eval-only run reaches the agent with --drop's modality zeroed. Fails if
+    the evaluation ignores --drop."""
+    _, _, agent = ss_run
+    seen = []
+    real = D.Observer.forward
+
+    def spy(self, image, attr, drop="none"):
+        seen.append(drop)
+        return real(self, image, attr, drop)
+
+    monkeypatch.setattr(D.Observer, "forward", spy)
+    for drop in ("vision", "attr", "none"):
+        seen.clear()
+        D.main(small_args(pretrained, eval_only=True, checkpoint=str(agent), drop=drop, eval_episodes=2))
+        assert len(seen) >= 100 and set(seen) == {drop}, drop  # 2 episodes of 100 steps

@@ -249,3 +249,21 @@ def test_ctrl_c_saves_the_run_where_it_stopped(pretrained):
     flags = [*SS, str(tmp / "ck"), *TINY, "--exp-name", "interrupted_e2e"]
     state, step = interrupt_run("gw_dreamer_e2e.py", tmp, agent, *flags)
     assert state["updates"] == (step - 100) // 10
+
+
+def test_eval_only_encodes_every_observation_with_the_drop_it_was_given(ss_run, pretrained, monkeypatch):
+    """Every observation of an --eval-only run is fused into z with --drop's weights. Fails if the
+    evaluation ignores --drop."""
+    _, _, agent = ss_run
+    seen = []
+    real = E.Agent.z
+
+    def spy(self, u_v, u_attr, drop="none"):
+        seen.append(drop)
+        return real(self, u_v, u_attr, drop)
+
+    monkeypatch.setattr(E.Agent, "z", spy)
+    for drop in ("vision", "attr", "none"):
+        seen.clear()
+        E.main(ss_args(pretrained, eval_only=True, checkpoint=str(agent), drop=drop, eval_episodes=2))
+        assert len(seen) >= 100 and set(seen) == {drop}, drop  # 2 episodes of 100 steps

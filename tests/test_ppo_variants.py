@@ -212,3 +212,23 @@ def test_ppo_loss_clips_the_surrogate_and_the_value_by_hand():
     assert terms["value_loss"].item() == pytest.approx(v)
     assert loss.item() == pytest.approx(pg - 0.01 * 0.3 + 0.5 * v)
     assert terms["clipfrac"].item() == pytest.approx(0.5)
+
+
+def test_eval_only_feeds_every_observation_through_the_drop_it_was_given(ss_runs, monkeypatch):
+    """Every observation of an --eval-only run reaches the policy through --drop (zeroed input, or the
+    GW's fusion weights). Fails if the evaluation ignores --drop."""
+    tmp, _ = ss_runs
+    seen = []
+    real = PPO.Observer.forward
+
+    def spy(self, obs, drop, dev):
+        seen.append(drop)
+        return real(self, obs, drop, dev)
+
+    monkeypatch.setattr(PPO.Observer, "forward", spy)
+    for drop in ("vision", "attr", "none"):
+        seen.clear()
+        args = PPO.Args(variant="gw", checkpoint_dir=str(tmp / "ck"), eval_only=True, drop=drop)
+        args.eval_episodes = 2
+        PPO.main(args)
+        assert len(seen) >= 100 and set(seen) == {drop}, drop  # 2 episodes of 100 steps
