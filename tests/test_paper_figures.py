@@ -146,3 +146,22 @@ def test_the_reproduction_script_runs_valid_commands_only(tmp_path):
         module = importlib.import_module(Path(c[1]).stem)
         tyro.cli(module.Args, args=c[2:])  # exits (SystemExit 2) on a flag the script does not have
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_robodesk_reproduction_script_runs_valid_commands_only(tmp_path):
+    """Its dry run prints the pre-training (PRETRAIN=1), each seed's training and its three ablations,
+    then the figures; every command parses with its script's own flags, and the dry run writes nothing."""
+    script = ROOT / "benchmarks" / "reproduce_robodesk.sh"
+    env = {"DRY_RUN": "1", "PRETRAIN": "1", "PATH": "/usr/bin:/bin"}
+    out = subprocess.run(["bash", str(script), "2"], cwd=tmp_path, capture_output=True, text=True, env=env)
+    assert out.returncode == 0, out.stderr
+    commands = [shlex.split(line) for line in out.stdout.splitlines()]
+    scripts = [Path(c[1]).name for c in commands]
+    assert scripts == ["pretrain_vae_gw.py", *["gw_dreamer.py"] * 8, "paper_figures.py"]
+    drops = [c[c.index("--drop") + 1] for c in commands if "--drop" in c]
+    assert drops == ["none", "vision", "attr"] * 2
+    for c in commands:
+        args = tyro.cli(importlib.import_module(Path(c[1]).stem).Args, args=c[2:])
+        assert args.env == "robodesk"
+        assert getattr(args, "cpu_preset", True)
+    assert list(tmp_path.iterdir()) == []

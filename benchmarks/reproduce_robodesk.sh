@@ -1,0 +1,71 @@
+#!/usr/bin/env bash
+# The RoboDesk GW-Dreamer result behind docs/figures (push_green at the CPU scale), seeds 1..N, then the
+# figures.
+#
+#   bash benchmarks/reproduce_robodesk.sh 3               # N = 3 seeds (default 3) on the bundled GW
+#   PRETRAIN=1 bash benchmarks/reproduce_robodesk.sh 3    # first make the VAEs + GW anew (about 70 min)
+#   DRY_RUN=1 bash benchmarks/reproduce_robodesk.sh 2     # print the commands only
+#
+# Runs JOBS (default 2) trainings at a time, each with --torch-threads 1. A seed of
+# `gw_dreamer.py --env robodesk --cpu-preset` runs to the criterion or 200,000 frames: at most about
+# 2 h with two side by side on a 2-core AMD EPYC CPU (torch 2.13.0, docs/results/robodesk_runs.csv), then
+# its modality ablation (10 episodes each with both modalities, without vision, without attributes:
+# about 3 min each).
+#
+# Everything goes to $OUT (default: reproduced_robodesk/): checkpoints/, runs/ (TensorBoard), logs/,
+# results/ (the CSV records) and figures/. Nothing outside it is written, and an existing $OUT is refused.
+# A run that stopped can be continued alone: its command is the first line of its log, plus --resume.
+set -euo pipefail
+N=${1:-3}
+JOBS=${JOBS:-2}
+OUT=${OUT:-reproduced_robodesk}
+DRY_RUN=${DRY_RUN:-0}
+PRETRAIN=${PRETRAIN:-0}
+REPO="$(cd "$(dirname "$0")/.." && pwd)"
+export MUJOCO_GL=${MUJOCO_GL:-egl}
+if [ "$DRY_RUN" != 1 ]; then
+  if [ -e "$OUT" ]; then echo "error: $OUT exists; choose another OUT=" >&2; exit 2; fi
+  mkdir -p "$OUT/logs"
+fi
+
+# Run a command inside $OUT (or print it), its output to logs/<name>.log.
+step() {
+  local name=$1; shift
+  if [ "$DRY_RUN" = 1 ]; then echo "$*"; return 0; fi
+  echo "$*" > "$OUT/logs/$name.log"
+  (cd "$OUT" && "$@") >> "$OUT/logs/$name.log" 2>&1 || echo "failed (exit $?): $* (see $OUT/logs/$name.log)"
+}
+
+# 1. Pre-training (optional): without it the agents read the bundled envs/pretrained/robodesk/.
+if [ "$PRETRAIN" = 1 ]; then
+  step pretrain python "$REPO/pretrain_vae_gw.py" --env robodesk --cpu-preset --data-dir data \
+    --checkpoint-dir checkpoints
+fi
+
+# 2. The agents, JOBS at a time: train to the criterion or 200,000 frames, then the modality ablation.
+agent() {  # seed
+  local s=$1 name="gw_dreamer_robodesk_push_green_s$1"
+  local common="--env robodesk --task push_green --cpu-preset --seed $s --checkpoint-dir checkpoints --torch-threads 1"
+  # shellcheck disable=SC2086  # flags are words
+  step "$name" python "$REPO/gw_dreamer.py" $common --stop-at-criterion
+  for drop in none vision attr; do
+    # shellcheck disable=SC2086
+    step "${name}_drop_$drop" python "$REPO/gw_dreamer.py" $common --eval-only --drop $drop --eval-episodes 10
+    if [ "$DRY_RUN" != 1 ]; then
+      grep "\[eval\]" "$OUT/logs/${name}_drop_$drop.log" \
+        > "$OUT/runs/gw_dreamer_gw_robodesk_push_green_s$s/eval_drop_$drop.txt" || true
+    fi
+  done
+}
+export -f step agent
+export OUT REPO DRY_RUN
+if [ "$DRY_RUN" = 1 ]; then
+  for s in $(seq 1 "$N"); do agent "$s"; done
+else
+  seq 1 "$N" | xargs -P "$JOBS" -I{} bash -c 'agent "$1"' _ {}
+fi
+
+# 3. The figures and the records they are drawn from.
+step figures python "$REPO/benchmarks/paper_figures.py" --env robodesk --runs runs --export results \
+  --out figures
+[ "$DRY_RUN" = 1 ] || echo "done: $OUT/figures, $OUT/results (merge them into docs/ to replace the committed ones)"
