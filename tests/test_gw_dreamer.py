@@ -799,3 +799,35 @@ def test_train_update_leaves_the_world_model_to_its_own_loss_under_dynamics_back
     G.world_model_loss(twin.wm, twin.reward_dec, batch, args)[0].backward()
     for p, q in zip(agent.wm.parameters(), twin.wm.parameters(), strict=True):
         assert torch.allclose(p.grad, q.grad, atol=1e-6)
+
+
+def test_resume_restores_weights_optimisers_replay_counters_and_random_states(ss_run, monkeypatch):
+    """--resume puts back exactly what the checkpoint holds: every weight and buffer of the agent, the
+    three Adam states, the replay (and its sampler's state), the loop counters and both global random
+    states. Fails if any of them is skipped or restored from the wrong entry."""
+    tmp, _, agent_path = ss_run
+    monkeypatch.chdir(tmp)  # the run's runs/ folder
+    ck = torch.load(agent_path, weights_only=False)
+    args = G.Args(**(ck["args"] | dict(resume=True, checkpoint=str(agent_path)))).resolve()
+    encoder, paths = G.load_frozen(args, torch.device("cpu"))
+    torch.manual_seed(123)  # other weights and random state than the saved ones
+    np.random.seed(123)
+    agent = G.Agent(args.env, encoder.z_dim, args.reward_loss, args.return_norm_decay, args.cpu_preset)
+    run = G.start_run(args, encoder, agent, paths, agent_path)
+    run.writer.close()
+    saved = ck["agent"]
+    assert saved.keys() == agent.state_dict().keys()
+    assert all(torch.equal(v, saved[k]) for k, v in agent.state_dict().items())
+    for name, opt in run.opts.items():
+        now, then = opt.state_dict()["state"], ck["opts"][name]["state"]
+        assert now.keys() == then.keys() and len(now) > 0, name
+        for i in now:
+            assert all(torch.equal(now[i][k], then[i][k]) for k in then[i]), name
+    replay = run.replay.state_dict()
+    for k, v in ck["replay"].items():
+        if k == "last":  # the episode the save cut is closed
+            continue
+        assert (v == replay[k]) if k == "rng" else np.array_equal(v, replay[k]), k
+    assert dataclasses.asdict(run.state) == ck["state"]
+    assert torch.equal(torch.get_rng_state(), ck["torch_rng"])
+    assert all(np.array_equal(a, b) for a, b in zip(np.random.get_state(), ck["np_rng"], strict=True))
