@@ -831,3 +831,58 @@ def test_resume_restores_weights_optimisers_replay_counters_and_random_states(ss
     assert dataclasses.asdict(run.state) == ck["state"]
     assert torch.equal(torch.get_rng_state(), ck["torch_rng"])
     assert all(np.array_equal(a, b) for a, b in zip(np.random.get_state(), ck["np_rng"], strict=True))
+
+
+def test_the_criterion_is_the_first_episode_end_where_the_full_window_reaches_it():
+    """Normalised returns 0.8, 0, 0.9, 0.7, 0.8, 0.9 with a window of 3 and criterion 0.75: the first
+    episode alone (0.8) does not count, the smoothed return over a full window first reaches 0.75 at the
+    fifth episode ((0.9 + 0.7 + 0.8) / 3), whose end step is recorded and kept at the sixth; a window of
+    5 never reaches it (0.64, 0.66). Fails if a half-empty window counts, if the window is not the last
+    --smoothing episodes, or if a later episode moves the step."""
+    args = SimpleNamespace(env="simple_shapes", smoothing=3, criterion=0.75)
+    writer = SimpleNamespace(add_scalar=lambda *a: None)
+    run = SimpleNamespace(args=args, state=G.LoopState(), writer=writer, ref=(0.0, 10.0), t0=0.0)
+    run.normalise = lambda ret: ret / 10.0
+    steps, returns = (100, 200, 300, 400, 500, 600), (8.0, 0.0, 9.0, 7.0, 8.0, 9.0)
+    for step, ret in zip(steps, returns, strict=True):
+        run.state.env_steps = step
+        G.log_episode(run, ret, 0.0)
+        assert run.state.criterion_step == (None if step < 500 else 500), step
+    assert run.state.recent == pytest.approx([0.7, 0.8, 0.9])
+    run.state, run.args.smoothing = G.LoopState(), 5
+    for step, ret in zip(steps, returns, strict=True):
+        run.state.env_steps = step
+        G.log_episode(run, ret, 0.0)
+    assert run.state.criterion_step is None
+
+
+def test_dreams_feed_the_world_models_own_z_back_after_the_first_step():
+    """The world model reads the real z_0 at the first dreamt step, then its own prediction z_hat_k of the
+    step before (Figure 3 (2)). Fails if a dream reads the real z_0 at every step."""
+    agent, h0, z0 = continuous_agent()
+    agent.float()
+    h0, z0 = h0.float(), z0.float()
+    seen, real = [], agent.wm.step
+
+    def spy(h, z, a):
+        seen.append((h, z))
+        return real(h, z, a)
+
+    agent.wm.step = spy
+    G.imagine(agent, h0, z0, 4)
+    assert torch.equal(seen[0][1], z0)
+    for h, z in seen[1:]:  # the state a step reads and the z predicted from it
+        assert torch.allclose(z, agent.wm.heads(h)[0])
+    assert not torch.allclose(seen[1][1], z0)
+
+
+def test_the_mse_reward_head_predicts_symexp_of_one_output_and_fits_symlog_r():
+    """--reward-loss mse: one output y, reward symexp(y), loss (y - symlog(r))^2 (the text's MSE on the
+    reward). Fails if the loss is taken on r itself or the prediction is not symexp'd."""
+    dec = G.RewardDecoder("mse", G.TwoHot())
+    out = torch.tensor([[0.0], [1.0], [-2.0]])
+    r = torch.tensor([0.0, math.e - 1, 3.0])
+    assert torch.allclose(dec.value(out), torch.tensor([0.0, math.e - 1, -(math.e**2 - 1)]))
+    want = torch.tensor([0.0, 0.0, (-2.0 - math.log(4.0)) ** 2])
+    assert torch.allclose(dec.loss(out, r), want)
+    assert G.Agent("simple_shapes", 10, "mse").wm.reward_head[-1].out_features == 1
