@@ -117,10 +117,13 @@ def z_change_per_action(encoder, n: int, seed: int) -> np.ndarray:
     """||z(s') - z(s)||^2 for each action 1-6 from n reset states s (rows), s' = s after the action."""
     env, out = SimpleShapesVectorEnv(1), []
     for i in range(n):
-        obs, _ = env.reset(seed=seed + i)
-        z0, core = encoder(obs), env._core
+        env.reset(seed=seed + i)
+        core = env._core
         state = {k: getattr(core, k)[:1].copy() for k in ("cls", "size", "rgb")}
-        x, y, rot = core.pos[0, 0], core.pos[0, 1], core.rotation[0]
+        # one pixel inside the start range, so that every moved state is one the env accepts
+        (x, y), rot = np.clip(core.pos[0], 8, 23), core.rotation[0]
+        obs, _ = env.reset(options={"state": state | {"x": [x], "y": [y], "rotation": [rot]}})
+        z0 = encoder(obs)
         row = []
         for dx, dy, dr in ACTION_DELTAS[1:]:
             moved = {"x": [x + dx], "y": [y + dy], "rotation": [np.mod(rot + dr, 2 * np.pi)]}

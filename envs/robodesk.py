@@ -274,6 +274,8 @@ class RoboDeskEnv(gym.Env):
     def step(self, action):
         if not self._started:
             raise RuntimeError("call reset() before step()")
+        if self._num_steps >= self.episode_length:  # gymnasium leaves stepping past the end undefined
+            raise RuntimeError("the episode has ended (truncated): call reset() before step()")
         action = self._check_action(action)
         m, d = self.model, self.data
         total = 0.0

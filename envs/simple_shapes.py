@@ -436,27 +436,42 @@ class _ShapesCore:
         }
 
 
+def _whole(name: str, value, n: int, low: int, high: int) -> np.ndarray:
+    """``value`` broadcast to n whole numbers in [low, high], or a ValueError naming ``name``."""
+    v = np.broadcast_to(np.asarray(value, dtype=np.float64), (n,))
+    if not np.all(np.isfinite(v)) or np.any(v != np.round(v)) or np.any((v < low) | (v > high)):
+        raise ValueError(f"{name} must be whole numbers in [{low}, {high}], got {value}")
+    return v.astype(np.int64)
+
+
+STATE_KEYS = {"cls", "x", "y", "size", "rotation", "rgb"}
+
+
 def _validate_state(state: dict[str, Any], n: int) -> dict[str, np.ndarray]:
-    """A user-given state (keys cls, x, y, size, rotation, rgb) as arrays for n environments."""
-    missing = {"cls", "x", "y", "size", "rotation", "rgb"} - set(state)
+    """A user-given state (keys cls, x, y, size, rotation, rgb) as arrays for n environments. It must lie
+    where the environment itself starts episodes (whole pixels in [7, 24], so that an episode of
+    max_episode_steps stays inside the observation space), with a finite rotation."""
+    missing, unknown = sorted(STATE_KEYS - set(state)), sorted(set(state) - STATE_KEYS)
     if missing:
-        raise ValueError(f"options['state'] lacks {sorted(missing)}; give cls, x, y, size, rotation, rgb")
-    cls = np.broadcast_to(np.asarray(state["cls"], dtype=np.int64), (n,))
-    if np.any((cls < 0) | (cls >= N_CLASSES)):
-        raise ValueError(f"cls must be 0 (diamond), 1 (egg) or 2 (triangle), got {state['cls']}")
-    x = np.broadcast_to(np.asarray(state["x"], dtype=np.float64), (n,))
-    y = np.broadcast_to(np.asarray(state["y"], dtype=np.float64), (n,))
-    size = np.broadcast_to(np.asarray(state["size"], dtype=np.int64), (n,))
-    if np.any(x != np.round(x)) or np.any(y != np.round(y)):
-        raise ValueError("x and y must be whole pixels (the environment moves shapes by whole pixels)")
-    if np.any((size < SIZE_MIN) | (size > SIZE_MAX)):
-        raise ValueError(f"size must be in [{SIZE_MIN}, {SIZE_MAX}], got {state['size']}")
+        raise ValueError(f"options['state'] lacks {missing}; give cls, x, y, size, rotation, rgb")
+    if unknown:
+        raise ValueError(f"options['state'] has unknown keys {unknown}; give cls, x, y, size, rotation, rgb")
+    cls = _whole("cls (0 diamond, 1 egg, 2 triangle)", state["cls"], n, 0, N_CLASSES - 1)
+    x = _whole("x (pixels)", state["x"], n, MARGIN, IMAGE_SIZE - MARGIN - 1)
+    y = _whole("y (pixels)", state["y"], n, MARGIN, IMAGE_SIZE - MARGIN - 1)
+    size = _whole("size", state["size"], n, SIZE_MIN, SIZE_MAX)
+    rotation = np.broadcast_to(np.asarray(state["rotation"], dtype=np.float64), (n,))
+    if not np.all(np.isfinite(rotation)):
+        raise ValueError(f"rotation must be a finite angle in radians, got {state['rotation']}")
+    rgb = np.broadcast_to(np.asarray(state["rgb"], dtype=np.float64), (n, 3))
+    if not np.all(np.isfinite(rgb)) or np.any(rgb != np.round(rgb)) or np.any((rgb < 0) | (rgb > 255)):
+        raise ValueError(f"rgb must be three whole numbers in [0, 255], got {state['rgb']}")
     return {
         "cls": cls,
-        "pos": np.stack([x, y], 1),
+        "pos": np.stack([x, y], 1).astype(np.float64),
         "size": size,
-        "rotation": np.mod(np.broadcast_to(np.asarray(state["rotation"], dtype=np.float64), (n,)), 2 * np.pi),
-        "rgb": np.broadcast_to(np.asarray(state["rgb"], dtype=np.uint8), (n, 3)),
+        "rotation": np.mod(rotation, 2 * np.pi),
+        "rgb": rgb.astype(np.uint8),
     }
 
 
@@ -479,17 +494,22 @@ class SimpleShapesEnv(gym.Env):
         self.observation_space, self.action_space = _spaces(max_episode_steps)
         self._core = _ShapesCore(1, rotation_reward_coef, max_episode_steps)
         self._obs: dict[str, np.ndarray] | None = None
+        self._ended = False  # stepping past the end is an error (gymnasium leaves it undefined)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         self._core.reset(np.array([0]), [self.np_random], options)
+        self._ended = False
         return self._observe(), self._info()
 
     def step(self, action):
         if self._obs is None:
             raise RuntimeError("call reset() before step()")
+        if self._ended:
+            raise RuntimeError("the episode has ended (terminated or truncated): call reset() before step()")
         a = _check_actions(np.reshape(action, (1,)) if np.ndim(action) == 0 else action, 1)
         reward, terminated, truncated = self._core.step(a)
+        self._ended = bool(terminated[0] or truncated[0])
         return self._observe(), float(reward[0]), bool(terminated[0]), bool(truncated[0]), self._info()
 
     def render(self):

@@ -321,3 +321,18 @@ def test_dense_reward_of_each_task_family_against_its_formula(task, moves, froze
     want = plain_dense_reward(task, d.site_xpos[env._ee_site].copy(), pos, ref, joints)
     assert env.task_reward("dense") == pytest.approx(want, abs=1e-9)
     assert 0.0 < want < 1.0 or task == "flat_block_in_bin"  # the state tests more than a clip
+
+
+def test_stepping_past_the_end_of_an_episode_is_an_error():
+    """After the truncating step the env refuses to step (gymnasium leaves it undefined) until reset.
+    Fails if the episode end is not enforced."""
+    e = RoboDeskEnv(render_images=False, episode_length=8)
+    e.reset(seed=0)
+    _, _, _, truncated, _ = e.step(np.zeros(5))
+    assert not truncated
+    _, _, _, truncated, _ = e.step(np.zeros(5))
+    assert truncated
+    with pytest.raises(RuntimeError, match="episode has ended"):
+        e.step(np.zeros(5))
+    e.reset(seed=1)
+    e.step(np.zeros(5))

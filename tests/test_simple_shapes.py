@@ -304,3 +304,41 @@ def test_reference_returns_bracket_the_normalised_return():
     random_ret, greedy_ret = reference_returns(episodes=200, seed=5)
     assert random_ret < -1_800 and -600 < greedy_ret < -100, (random_ret, greedy_ret)
     assert reference_returns(episodes=200, seed=5) == (random_ret, greedy_ret)  # seeded
+
+
+@pytest.mark.parametrize(
+    "bad, match",
+    [
+        ({"x": 1000}, "x"),
+        ({"y": 6}, "y"),
+        ({"x": 16.5}, "x"),
+        ({"rotation": float("nan")}, "rotation"),
+        ({"cls": 1.7}, "cls"),
+        ({"cls": 3}, "cls"),
+        ({"size": 10.9}, "size"),
+        ({"rgb": (256, 0, 0)}, "rgb"),
+        ({"colour": 1}, "unknown keys"),
+    ],
+)
+def test_a_reset_state_outside_the_observation_space_is_refused(bad, match):
+    """reset(options={"state": ...}) takes only states the environment could start in (whole pixels in
+    [7, 24], a class, a size in [7, 14], a finite rotation, a colour): anything else is a ValueError
+    naming the key, never silently rounded or clipped. Fails if a check is dropped."""
+    with pytest.raises(ValueError, match=match):
+        start(SimpleShapesEnv(), **bad)
+
+
+def test_every_observation_of_an_episode_lies_in_the_space_and_stepping_past_its_end_is_an_error():
+    """From the extreme corner the env allows, 100 steps pushing outwards keep every observation inside
+    the observation space; a step after the truncation raises (gymnasium leaves it undefined) until
+    reset. Fails if the state bounds are widened or the episode end is not enforced."""
+    env = SimpleShapesEnv()
+    obs, _ = start(env, x=7, y=7, rotation=1.0)
+    for _ in range(100):
+        obs, _, terminated, truncated, _ = env.step(3)  # x - 1
+        assert env.observation_space.contains(obs)
+    assert truncated and not terminated
+    with pytest.raises(RuntimeError, match="episode has ended"):
+        env.step(0)
+    start(env)
+    env.step(0)
