@@ -130,6 +130,10 @@ class Args:
     """EMA decay of the slow critic that regularises the critic (DreamerV3)"""
     return_norm_decay: float = 0.99
     """EMA decay of the return scale max(1, P95 - P5) (DreamerV3)"""
+    actor_mean_reg: float = 0.0
+    """weight of 0.5 mean(m^2) on the continuous actor's mean m before its tanh, in the actor's loss: it
+    keeps the tanh out of saturation, where dynamics backpropagation can no longer move the policy (the
+    original SAC's policy regulariser; docs/paper_readings.md)"""
     actor_grad: Literal["auto", "reinforce", "dynamics"] = "auto"
     """actor gradient: REINFORCE, or backpropagation of the lambda-returns through the dreamt transitions
     into the actions (the world model's weights get no gradient from it); auto: REINFORCE for discrete
@@ -752,7 +756,15 @@ def lambda_returns(rewards, conts, values, gamma: float, lam: float) -> torch.Te
 
 
 def actor_critic_loss(
-    agent, dream: Dream, start_w, *, dynamics=False, gamma=1 - 1 / 333, lam=0.95, entropy_coef=3e-3
+    agent,
+    dream: Dream,
+    start_w,
+    *,
+    dynamics=False,
+    gamma=1 - 1 / 333,
+    lam=0.95,
+    entropy_coef=3e-3,
+    mean_reg=0.0,
 ):
     """DreamerV3 actor-critic on an imagined rollout, advantages normalised by the return scale, with an
     entropy bonus. The actor's gradient is REINFORCE, or (``dynamics``) that of the normalised
@@ -780,6 +792,9 @@ def actor_critic_loss(
     else:
         objective = logp * ((returns - values[:-1]) / norm).detach()
     loss_actor = -(w * (objective + entropy_coef * entropy)).mean()
+    if mean_reg:  # the continuous actor's mean before its tanh, kept out of saturation
+        m = agent.actor.net(feats[:-1].detach()).chunk(2, -1)[0]
+        loss_actor = loss_actor + mean_reg * 0.5 * (m**2).sum(-1).mean()
     target = returns.detach()
     loss_critic = (w * (twohot.loss(logits, target) + twohot.loss(logits, slow_target))).mean()
     stats = {"return_scale": scale, "imag_return": target.mean(), "entropy": entropy.detach().mean()}
@@ -799,6 +814,7 @@ def dream_loss(agent: Agent, h0: torch.Tensor, z0: torch.Tensor, start_w: torch.
         gamma=args.gamma,
         lam=args.lam,
         entropy_coef=args.entropy_coef,
+        mean_reg=args.actor_mean_reg,
     )
 
 
@@ -1250,7 +1266,10 @@ def check_settings(args: Args) -> None:
     at_least_1 += " log_every save_every smoothing"
     for flag in at_least_1.split():
         require(getattr(args, flag) >= 1, flag, getattr(args, flag), "must be at least 1")
-    for flag in "learning_starts video_every entropy_coef wm_z_coef wm_reward_coef wm_done_coef".split():
+    nonnegative = (
+        "learning_starts video_every entropy_coef wm_z_coef wm_reward_coef wm_done_coef actor_mean_reg"
+    )
+    for flag in nonnegative.split():
         require(getattr(args, flag) >= 0, flag, getattr(args, flag), "must not be negative")
     for flag in ("train_ratio", "wm_lr", "ac_lr"):
         require(getattr(args, flag) > 0, flag, getattr(args, flag), "must be positive")
