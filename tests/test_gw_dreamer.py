@@ -886,3 +886,25 @@ def test_the_mse_reward_head_predicts_symexp_of_one_output_and_fits_symlog_r():
     want = torch.tensor([0.0, 0.0, (-2.0 - math.log(4.0)) ** 2])
     assert torch.allclose(dec.loss(out, r), want)
     assert G.Agent("simple_shapes", 10, "mse").wm.reward_head[-1].out_features == 1
+
+
+def test_the_actor_mean_regulariser_adds_half_the_squared_pre_tanh_mean():
+    """--actor-mean-reg c adds c * 0.5 * mean over dreamt states of sum_i m_i^2, m the continuous actor's
+    mean before its tanh, to the actor's loss and to nothing else. Fails if the penalty reads the mean
+    after the tanh, or reaches the critic's loss."""
+    agent, h0, z0 = continuous_agent()
+    agent.float()
+    h0, z0 = h0.float(), z0.float()
+    with torch.no_grad():
+        agent.actor.net[-1].weight.mul_(30.0)  # means well past the tanh's linear range
+    torch.manual_seed(3)
+    dream = G.imagine(agent, h0, z0, 4)
+    fresh = copy.deepcopy(agent.return_scale.state_dict())
+    base = G.actor_critic_loss(agent, dream, torch.ones(6), dynamics=True)
+    agent.return_scale.load_state_dict(fresh)  # the second call sees the same return scale
+    reg = G.actor_critic_loss(agent, dream, torch.ones(6), dynamics=True, mean_reg=0.1)
+    m = agent.actor.net(dream.feats[:-1]).chunk(2, -1)[0]
+    assert m.abs().max() > 2.0
+    want = 0.1 * 0.5 * (m**2).sum(-1).mean()
+    assert (reg[0] - base[0]).item() == pytest.approx(want.item(), rel=1e-4)
+    assert reg[1].item() == pytest.approx(base[1].item(), rel=1e-6)
