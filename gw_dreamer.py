@@ -1262,6 +1262,9 @@ def load_agent_checkpoint(path: Path, args: Args, fingerprint: float) -> dict:
 
 def check_settings(args: Args) -> None:
     """Every numeric flag in range, and flags that only make sense together, before anything runs."""
+    for flag, value in vars(args).items():  # inf and nan would pass every range check below
+        if isinstance(value, float):
+            require(math.isfinite(value), flag, value, "must be a finite number")
     at_least_1 = "total_steps num_envs batch_size batch_length imag_horizon eval_every eval_episodes"
     at_least_1 += " log_every save_every smoothing"
     for flag in at_least_1.split():
@@ -1594,7 +1597,8 @@ def evaluate_checkpoint(agent: Agent, encoder: FrozenEncoder, args: Args, path: 
         line += f", normalised {out['normalised_return']:.3f}"
     if args.env == "robodesk":
         out["success_count"] = float(succ.mean())
-        line += f", success count {succ.mean():.1f} ± {succ.std(ddof=1) / math.sqrt(len(succ)):.1f}"
+        succ_sem = succ.std(ddof=1) / math.sqrt(len(succ)) if len(succ) > 1 else 0.0
+        line += f", success count {succ.mean():.1f} ± {succ_sem:.1f}"
     print(line)
     return out
 

@@ -714,6 +714,9 @@ def load_agent_checkpoint(path: Path, args: Args, frozen: dict) -> dict:
 
 def check_settings(args: Args) -> None:
     """Every numeric flag in range, and flags that only make sense together, before anything runs."""
+    for flag, value in vars(args).items():  # inf and nan would pass every range check below
+        if isinstance(value, float):
+            require(math.isfinite(value), flag, value, "must be a finite number")
     at_least_1 = "total_steps num_envs num_steps update_epochs minibatch_size frame_stack hidden"
     for flag in (at_least_1 + " eval_episodes save_every smoothing").split():
         require(getattr(args, flag) >= 1, flag, getattr(args, flag), "must be at least 1")

@@ -484,6 +484,9 @@ def resume_partial(partial: Path, identity: dict, args: Args, stage: str) -> dic
 
 def check_settings(args: Args) -> None:
     """Every numeric flag in range before anything runs."""
+    for flag, value in vars(args).items():  # inf and nan would pass every range check below
+        if isinstance(value, float):
+            require(math.isfinite(value), flag, value, "must be a finite number")
     at_least_1 = "n_samples shard_size vae_steps attr_updates_per_step gw_steps log_every save_every"
     for flag in (at_least_1 + " eval_size").split():
         require(getattr(args, flag) >= 1, flag, getattr(args, flag), "must be at least 1")

@@ -245,6 +245,11 @@ BAD_FLAGS = [
     ("ppo_variants.py", ["--drop", "attr"], "--drop attr: is for evaluation: add --eval-only"),
     ("pretrain_vae_gw.py", ["--vae-batch-size", "1"], "--vae-batch-size 1: must be at least 2"),
     ("pretrain_vae_gw.py", ["--n-samples", "0"], "--n-samples 0: must be at least 1"),
+    ("gw_dreamer.py", ["--ac-lr", "inf"], "--ac-lr inf: must be a finite number"),
+    ("gw_dreamer_e2e.py", ["--gw-lr-max", "nan"], "--gw-lr-max nan: must be a finite number"),
+    ("dreamer_baseline.py", ["--wm-lr", "inf"], "--wm-lr inf: must be a finite number"),
+    ("ppo_variants.py", ["--learning-rate", "inf"], "--learning-rate inf: must be a finite number"),
+    ("pretrain_vae_gw.py", ["--beta-v", "inf"], "--beta-v inf: must be a finite number"),
 ]
 
 
