@@ -1152,6 +1152,14 @@ def setting_changes(saved: dict, now: dict, keys) -> list[str]:
     return out
 
 
+def last_good(path: Path) -> str:
+    """Where a run stopped by a non-finite value stands: its last save (written only from finite
+    weights), or none yet."""
+    if path.is_file():
+        return f"the last good checkpoint is {path}"
+    return f"no checkpoint was saved before it ({path} does not exist yet)"
+
+
 class StopRequest:
     """Ctrl-C (SIGINT) or SIGTERM asks the run to finish what it is doing, save and exit with code 130,
     so an interrupted run loses nothing and ``--resume`` continues it (a save made in the middle of an
@@ -1463,9 +1471,7 @@ def save(run: Run) -> None:
     a = run.args
     if a.compile and not all(torch.isfinite(p).all() for p in run.agent.parameters()):
         step = run.state.env_steps
-        raise FloatingPointError(
-            f"non-finite weights at env step {step:,}; the last good checkpoint is {run.agent_path}"
-        )
+        raise FloatingPointError(f"non-finite weights at env step {step:,}; {last_good(run.agent_path)}")
     run.last_save = time.time()
     atomic_save(
         {
@@ -1518,9 +1524,7 @@ def bookkeeping(run: Run, logs: dict) -> None:
     if step % a.log_every < a.num_envs * repeat and logs:
         logs = {k: float(v) for k, v in logs.items()}  # the one host sync per log interval
         if not all(map(math.isfinite, logs.values())):  # --compile checks here, not in the update
-            raise FloatingPointError(
-                f"non-finite losses by env step {step:,}; the last good checkpoint is {run.agent_path}"
-            )
+            raise FloatingPointError(f"non-finite losses by env step {step:,}; {last_good(run.agent_path)}")
         sps = (step - run.steps0) / max(time.time() - run.t0, 1e-9)
         for k, v in logs.items():
             w.add_scalar(f"losses/{k}", v, step)
@@ -1697,7 +1701,7 @@ def main(args: Args) -> dict:
                 else:
                     logs = train_update(agent, run.opts, replay, args, state.env_steps, losses)
             except FloatingPointError as err:
-                raise FloatingPointError(f"{err}; the last good checkpoint is {run.agent_path}") from err
+                raise FloatingPointError(f"{err}; {last_good(run.agent_path)}") from err
             state.updates += 1
             state.flops += state.flops_per_update
 

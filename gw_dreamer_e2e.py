@@ -1266,6 +1266,14 @@ def setting_changes(saved: dict, now: dict, keys) -> list[str]:
     return out
 
 
+def last_good(path: Path) -> str:
+    """Where a run stopped by a non-finite value stands: its last save (written only from finite
+    weights), or none yet."""
+    if path.is_file():
+        return f"the last good checkpoint is {path}"
+    return f"no checkpoint was saved before it ({path} does not exist yet)"
+
+
 class StopRequest:
     """Ctrl-C (SIGINT) or SIGTERM asks the run to finish what it is doing, save and exit with code 130,
     so an interrupted run loses nothing and ``--resume`` continues it (a save made in the middle of an
@@ -1529,9 +1537,7 @@ def save(run: Run) -> None:
     a = run.args
     if a.compile and not all(torch.isfinite(p).all() for p in run.agent.parameters()):
         step = run.state.env_steps
-        raise FloatingPointError(
-            f"non-finite weights at env step {step:,}; the last good checkpoint is {run.agent_path}"
-        )
+        raise FloatingPointError(f"non-finite weights at env step {step:,}; {last_good(run.agent_path)}")
     atomic_save(
         {
             "kind": "gw_dreamer_e2e",
@@ -1582,9 +1588,7 @@ def bookkeeping(run: Run, logs: dict) -> None:
     if step % a.log_every < a.num_envs * repeat and logs:
         logs = {k: float(v) for k, v in logs.items()}  # the one host sync per log interval
         if not all(map(math.isfinite, logs.values())):  # --compile checks here, not in the update
-            raise FloatingPointError(
-                f"non-finite losses by env step {step:,}; the last good checkpoint is {run.agent_path}"
-            )
+            raise FloatingPointError(f"non-finite losses by env step {step:,}; {last_good(run.agent_path)}")
         sps = (step - run.steps0) / max(time.time() - run.t0, 1e-9)
         for k, v in logs.items():
             w.add_scalar(f"charts/{k}" if k == "gw_lr" else f"losses/{k}", v, step)
@@ -1767,7 +1771,7 @@ def main(args: Args) -> dict:
                         agent, run.opts, replay, args, state.gw_updates, state.env_steps, losses
                     )
             except FloatingPointError as err:
-                raise FloatingPointError(f"{err}; the last good checkpoint is {run.agent_path}") from err
+                raise FloatingPointError(f"{err}; {last_good(run.agent_path)}") from err
             state.updates += 1
             state.gw_updates += args.gw_updates
             state.flops += state.flops_per_update

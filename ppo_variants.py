@@ -563,6 +563,14 @@ def setting_changes(saved: dict, now: dict, keys) -> list[str]:
     return out
 
 
+def last_good(path: Path) -> str:
+    """Where a run stopped by a non-finite value stands: its last save (written only from finite
+    weights), or none yet."""
+    if path.is_file():
+        return f"the last good checkpoint is {path}"
+    return f"no checkpoint was saved before it ({path} does not exist yet)"
+
+
 class StopRequest:
     """Ctrl-C (SIGINT) or SIGTERM asks the run to finish what it is doing, save and exit with code 130,
     so an interrupted run loses nothing and ``--resume`` continues it (a save made in the middle of an
@@ -1145,7 +1153,7 @@ def main(args: Args) -> dict:
                     else:
                         stats = ppo_update(agent, optimizer, mb, args, state.env_steps)
                 except FloatingPointError as err:
-                    raise FloatingPointError(f"{err}; the last good checkpoint is {agent_path}") from err
+                    raise FloatingPointError(f"{err}; {last_good(agent_path)}") from err
                 state.flops += state.flops_per_minibatch
             if args.target_kl is not None and stats["approx_kl"] > args.target_kl:
                 break

@@ -908,3 +908,33 @@ def test_the_actor_mean_regulariser_adds_half_the_squared_pre_tanh_mean():
     want = 0.1 * 0.5 * (m**2).sum(-1).mean()
     assert (reg[0] - base[0]).item() == pytest.approx(want.item(), rel=1e-4)
     assert reg[1].item() == pytest.approx(base[1].item(), rel=1e-6)
+
+
+def test_a_non_finite_loss_names_the_last_checkpoint_only_if_one_was_saved(pretrained, tmp_path, monkeypatch):
+    """A non-finite loss before the first save says that no checkpoint exists; one after a save names
+    that file, which holds finite weights. Fails if the message names a file that is not there."""
+    monkeypatch.chdir(tmp_path)
+    real, calls = G.train_update, []
+
+    def fails_at(n):
+        def update(*a, **kw):
+            calls.append(1)
+            if len(calls) == n:
+                raise FloatingPointError("non-finite world-model loss at env step 0")
+            return real(*a, **kw)
+
+        return update
+
+    kw = dict(
+        total_steps=400, eval_episodes=1, video_every=0, imag_horizon=5, train_ratio=10.0, log_every=100
+    )
+    monkeypatch.setattr(G, "train_update", fails_at(1))
+    with pytest.raises(FloatingPointError, match="no checkpoint was saved before it"):
+        G.main(ss_args(pretrained, exp_name="nan0", **kw))
+    calls.clear()
+    monkeypatch.setattr(G, "train_update", fails_at(20))  # after the save at 150 steps
+    with pytest.raises(FloatingPointError, match="the last good checkpoint is (.*nan1.*pt)") as err:
+        G.main(ss_args(pretrained, exp_name="nan1", save_every=150, **kw))
+    path = G.Path(str(err.value).split("the last good checkpoint is ")[1])
+    ck = torch.load(path, weights_only=False)
+    assert all(torch.isfinite(v).all() for v in ck["agent"].values() if v.is_floating_point())

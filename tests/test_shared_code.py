@@ -21,6 +21,7 @@ SHARED = {
         (*AGENTS, PRETRAIN),
     ),
     "claim_outputs": AGENTS,  # pre-training claims its outputs per stage
+    "last_good": AGENTS,
     # Pre-trained checkpoints: the bundled Simple Shapes VAE + GW and the missing-checkpoint messages
     **dict.fromkeys(
         "BUNDLED ROBODESK_TASKS ROBODESK_PIPELINE pretrained_paths pretrain_command load_pretrained".split(),
