@@ -150,10 +150,10 @@ class Args:
     """EMA decay of the slow critic that regularises the critic (DreamerV3)"""
     return_norm_decay: float = 0.99
     """EMA decay of the return scale max(1, P95 - P5) (DreamerV3)"""
-    actor_mean_reg: float = 0.0
+    actor_mean_reg: float | None = None
     """weight of 0.5 mean(m^2) on the continuous actor's mean m before its tanh, in the actor's loss: it
     keeps the tanh out of saturation, where dynamics backpropagation can no longer move the policy (the
-    original SAC's policy regulariser; docs/paper_readings.md)"""
+    original SAC's policy regulariser; default 0 Simple Shapes, 1e-3 RoboDesk; docs/paper_readings.md)"""
     actor_grad: Literal["auto", "reinforce", "dynamics"] = "auto"
     """actor gradient: REINFORCE, or backpropagation of the lambda-returns through the dreamt transitions
     into the actions (the world model's weights get no gradient from it); auto: REINFORCE for discrete
@@ -222,6 +222,7 @@ TABLE = {
         train_ratio=4.0,
         wm_lr=1e-3,
         entropy_coef=3e-3,
+        actor_mean_reg=0.0,
         eval_every=5_000,
         gw_lr_start=3e-3,
         gw_lr_max=1e-2,
@@ -236,6 +237,7 @@ TABLE = {
         train_ratio=2.0,
         wm_lr=3e-4,
         entropy_coef=3e-4,
+        actor_mean_reg=1e-3,
         eval_every=50_000,
         gw_lr_start=1e-4,
         gw_lr_max=3e-4,

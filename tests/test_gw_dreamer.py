@@ -23,6 +23,7 @@ from conftest import (
 )
 
 import gw_dreamer as G
+import gw_dreamer_e2e as E
 
 TINY = (
     "--learning-starts 100 --batch-size 4 --batch-length 8 --imag-horizon 5 --train-ratio 10"
@@ -938,3 +939,17 @@ def test_a_non_finite_loss_names_the_last_checkpoint_only_if_one_was_saved(pretr
     path = G.Path(str(err.value).split("the last good checkpoint is ")[1])
     ck = torch.load(path, weights_only=False)
     assert all(torch.isfinite(v).all() for v in ck["agent"].values() if v.is_floating_point())
+
+
+@pytest.mark.parametrize("module", [G, E], ids=["gw_dreamer", "gw_dreamer_e2e"])
+def test_the_actor_settings_follow_the_action_space(module):
+    """Simple Shapes (discrete actions) keeps REINFORCE, the 3e-3 bonus and no mean penalty, as its
+    recorded results; RoboDesk (continuous) defaults to dynamics backpropagation, DreamerV3's 3e-4 and
+    the 1e-3 mean penalty; a flag still wins. Fails if a default moves to the other environment."""
+    ss, rd = module.Args().resolve(), module.Args(env="robodesk").resolve()
+    assert (module.actor_grad(ss), ss.entropy_coef, ss.actor_mean_reg) == ("reinforce", 3e-3, 0.0)
+    assert (module.actor_grad(rd), rd.entropy_coef, rd.actor_mean_reg) == ("dynamics", 3e-4, 1e-3)
+    mine = module.Args(
+        env="robodesk", actor_grad="reinforce", entropy_coef=1e-2, actor_mean_reg=0.0
+    ).resolve()
+    assert (module.actor_grad(mine), mine.entropy_coef, mine.actor_mean_reg) == ("reinforce", 1e-2, 0.0)
