@@ -953,3 +953,27 @@ def test_the_actor_settings_follow_the_action_space(module):
         env="robodesk", actor_grad="reinforce", entropy_coef=1e-2, actor_mean_reg=0.0
     ).resolve()
     assert (module.actor_grad(mine), mine.entropy_coef, mine.actor_mean_reg) == ("reinforce", 1e-2, 0.0)
+
+
+def test_eval_only_returns_the_episodes_of_the_saved_agent(ss_run, pretrained):
+    """--eval-only's return is that of the checkpoint's agent: the same episodes run by hand on an agent
+    loaded from the file (same seeds, same draws) give the same mean, and an agent whose actor is zeroed
+    gives another. Fails if the evaluation does not load the saved weights."""
+    _, _, path = ss_run
+    args = ss_args(pretrained, eval_only=True, checkpoint=str(path), eval_episodes=3)
+    out = G.main(args)
+    encoder, _ = G.load_frozen(args, torch.device("cpu"))
+    returns = {}
+    for name in ("saved", "zeroed"):
+        np.random.seed(args.seed)
+        torch.manual_seed(args.seed)
+        agent = G.Agent(args.env, encoder.z_dim, args.reward_loss, args.return_norm_decay, args.cpu_preset)
+        agent.load_state_dict(torch.load(path, weights_only=False)["agent"])
+        if name == "zeroed":
+            with torch.no_grad():
+                agent.actor.net[-1].weight.zero_()
+                agent.actor.net[-1].bias.zero_()
+        rets, _ = G.run_episodes(agent, encoder, args, 3, "none", seed=args.seed + 10**6)
+        returns[name] = float(rets.mean())
+    assert out["return_mean"] == pytest.approx(returns["saved"], abs=1e-9)
+    assert returns["zeroed"] != pytest.approx(returns["saved"])
