@@ -217,7 +217,7 @@ TABLE = {
         criterion=0.70,
     ),
 }
-# --cpu-preset on RoboDesk: 200,000 frames in about 80 min on one core beside another run (docs/gw_dreamer.md)
+# --cpu-preset on RoboDesk: 200,000 frames in about 2.3 h on one core beside another run (docs/gw_dreamer.md)
 # An evaluation's 10 episodes are 20,000 frames of acting, so the preset evaluates every 100,000.
 CPU_TABLE = {"robodesk": dict(total_steps=200_000, batch_size=16, batch_length=64, eval_every=100_000)}
 TAG = "gw_dreamer"  # the prefix of every line this script prints
@@ -256,7 +256,8 @@ CPU_SIZES = {
 
 
 # One update at the paper's RoboDesk sizes on one CPU core next to another run, in seconds
-# (benchmarks/gw_dreamer_throughput.py); a run at those sizes on a CPU prints its estimated time.
+# (benchmarks/gw_dreamer_throughput.py, measured with the REINFORCE actor: the differentiated dream of
+# dynamics backpropagation adds to it); a run at those sizes on a CPU prints its estimated time.
 PAPER_SIZE_CPU_S = 4.9
 
 
@@ -1462,7 +1463,7 @@ def start_run(args: Args, encoder: FrozenEncoder, agent: Agent, paths: dict, age
         print(
             f"[{TAG}] the paper's sizes on a CPU: about {PAPER_SIZE_CPU_S} s per update on one core, so "
             f"{args.total_steps:,} frames take about {hours:.0f} h; --cpu-preset trains 200,000 frames in "
-            "about 80 min beside another run (docs/gw_dreamer.md)"
+            "about 2.3 h beside another run (docs/gw_dreamer.md)"
         )
     return run
 
