@@ -9,6 +9,12 @@
    next 20 rewards predicted one step ahead (real z read each step) and open loop (its own z fed back,
    as in a dream) with the actions that were taken, against the real rewards: mean |r_hat - r| at
    horizons 1, 5, 10 and 20, and the correlation of the 20-step sums.
+3. Whether the world model knows what other actions would do: in --counterfactual-states states reached
+   by the agent's own policy (fresh episodes, fast images), seven first actions (none, and +-1 along
+   each of x, y, z), each followed by 4 steps without action, run in the simulator from the same state
+   and dreamt by the world model from the agent's h and z there; the rank correlation of the seven
+   5-step reward sums, true against dreamt (1: the world model orders the actions as the simulator
+   does), and the spread of those sums across the actions.
 
     python benchmarks/robodesk_diagnose.py \\
         checkpoints/robodesk/agents/gw_dreamer_gw_robodesk_push_green_s1.pt
@@ -35,6 +41,8 @@ class Args:
     """replayed sequences (of the run's --batch-length) whose newest states are read"""
     seed: int = 0
     """seed of the replay sampling"""
+    counterfactual_states: int = 8
+    """states of part 3 (0 skips it: it needs MuJoCo's renderer and the agent's VAEs + GW)"""
 
 
 @torch.no_grad()
@@ -102,6 +110,63 @@ def open_loop_rewards(
     }
 
 
+@torch.no_grad()
+def counterfactual_actions(path: str, n_states: int, follow: int = 4) -> dict:
+    """Part 3: true and dreamt 5-step rewards of seven first actions from states the policy reaches."""
+    import os
+
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    from envs.robodesk import RoboDeskEnv
+
+    ck = torch.load(path, weights_only=False, map_location="cpu")
+    args = G.Args(**{k: v for k, v in ck["args"].items() if k in G.Args.__dataclass_fields__}).resolve()
+    encoder, _ = G.load_frozen(args, torch.device("cpu"))
+    agent = G.Agent("robodesk", encoder.z_dim, args.reward_loss, args.return_norm_decay, args.cpu_preset)
+    agent.load_state_dict(ck["agent"])
+    env = RoboDeskEnv(task=args.task, render_quality=args.render_quality, episode_length=args.episode_length)
+    firsts = [np.zeros(5, np.float32)]
+    for d in range(3):
+        for sign in (1.0, -1.0):
+            firsts.append(np.eye(5, dtype=np.float32)[d] * sign)
+    still = [np.zeros(5, np.float32)] * follow
+    corr, spread_true, spread_dream = [], [], []
+    for i in range(n_states):
+        obs, _ = env.reset(seed=1000 + i)
+        h = torch.zeros(1, agent.wm.hidden)
+        for _ in range(40 + 10 * i):  # states at agent steps 40, 50, 60, ...
+            z = encoder({k: v[None] for k, v in obs.items()})
+            a = agent.actor.act(agent.features(h, z))
+            obs, *_ = env.step(a[0].numpy())
+            h = agent.wm.step(h, z, a)
+        qpos, qvel, z0 = (
+            env.data.qpos.copy(),
+            env.data.qvel.copy(),
+            encoder({k: v[None] for k, v in obs.items()}),
+        )
+        true, dreamt = [], []
+        for first in firsts:
+            env.set_state(qpos, qvel)
+            true.append(sum(env.step(x)[1] for x in [first, *still]))
+            hh, zz, total = h, z0, 0.0
+            for x in [first, *still]:
+                hh = agent.wm.step(hh, zz, torch.as_tensor(x)[None])
+                zz, r_out, _ = agent.wm.heads(hh)
+                total += float(agent.reward_dec.value(r_out))
+            dreamt.append(total)
+        true, dreamt = np.array(true), np.array(dreamt)
+        ranks = [np.argsort(np.argsort(x)) for x in (true, dreamt)]
+        corr.append(float(np.corrcoef(*ranks)[0, 1]))
+        spread_true.append(np.ptp(true))
+        spread_dream.append(np.ptp(dreamt))
+    env.close()
+    return {
+        "rank_corr": float(np.mean(corr)),
+        "rank_corr_sem": float(np.std(corr, ddof=1) / np.sqrt(len(corr))) if len(corr) > 1 else 0.0,
+        "spread_true": float(np.mean(spread_true)),
+        "spread_dream": float(np.mean(spread_dream)),
+    }
+
+
 def main(args: Args) -> list[dict]:
     torch.set_num_threads(1)
     out = []
@@ -118,6 +183,14 @@ def main(args: Args) -> list[dict]:
             f"|r_hat - r| at horizons 1/5/10/20 one step ahead {np.round(r['one_step_err'], 3)}, open loop "
             f"{np.round(r['open_loop_err'], 3)}; 20-step sums correlate {r['return_corr']:.3f} (open loop)"
         )
+        if args.counterfactual_states:
+            c = counterfactual_actions(path, args.counterfactual_states)
+            print(
+                f"  other actions ({args.counterfactual_states} states): rank correlation of the 7 actions' "
+                f"5-step rewards, simulator against dream, {c['rank_corr']:.2f} ± {c['rank_corr_sem']:.2f} "
+                f"(s.e.m.); spread across them {c['spread_true']:.2f} true, {c['spread_dream']:.2f} dreamt"
+            )
+            r |= c
         out.append(r)
     return out
 
