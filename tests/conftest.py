@@ -143,3 +143,16 @@ def pretrained_robodesk(tmp_path_factory):
         tmp, "--env", "robodesk", "--stages", "gw", "--loss-preset", "clip", "--gw-batch-size", "8", *small
     )
     return tmp, log
+
+
+def record_calls(monkeypatch, cls, name: str, pick) -> list:
+    """Wrap ``cls.name`` so that every call still runs and ``pick(*args, **kwargs)`` (the arguments after
+    self) is appended to the returned list."""
+    seen, real = [], getattr(cls, name)
+
+    def spy(self, *args, **kwargs):
+        seen.append(pick(*args, **kwargs))
+        return real(self, *args, **kwargs)
+
+    monkeypatch.setattr(cls, name, spy)
+    return seen

@@ -8,7 +8,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from conftest import DREAMER_SMALL, interrupt_run, previous_layout, run_pretrain, run_script, tiny_agent_args
+from conftest import (
+    DREAMER_SMALL,
+    interrupt_run,
+    previous_layout,
+    record_calls,
+    run_pretrain,
+    run_script,
+    tiny_agent_args,
+)
 
 import dreamer_baseline as D
 import pretrain_vae_gw as P
@@ -376,14 +384,7 @@ def test_eval_only_feeds_every_observation_through_the_drop_it_was_given(ss_run,
     """Every observation of an --eval-only run reaches the agent with --drop's modality zeroed. Fails if
     the evaluation ignores --drop."""
     _, _, agent = ss_run
-    seen = []
-    real = D.Observer.forward
-
-    def spy(self, image, attr, drop="none"):
-        seen.append(drop)
-        return real(self, image, attr, drop)
-
-    monkeypatch.setattr(D.Observer, "forward", spy)
+    seen = record_calls(monkeypatch, D.Observer, "forward", lambda image, attr, drop="none": drop)
     for drop in ("vision", "attr", "none"):
         seen.clear()
         D.main(small_args(pretrained, eval_only=True, checkpoint=str(agent), drop=drop, eval_episodes=2))

@@ -17,6 +17,7 @@ from conftest import (
     assert_episodes_separated,
     interrupt_run,
     previous_layout,
+    record_calls,
     run_cli,
     run_script,
     tiny_agent_args,
@@ -674,14 +675,8 @@ def test_eval_only_encodes_with_the_fusion_weights_of_the_dropped_modality(ss_ru
     """Every observation of an --eval-only run goes through the GW with the weights of --drop (vision:
     alpha_v 0, attr: alpha_attr 0). Fails if the evaluation ignores --drop."""
     _, _, agent = ss_run
-    seen = []
-    real = G.FrozenEncoder.forward
-
-    def spy(self, obs, alpha_v=0.5, alpha_attr=0.5):
-        seen.append((alpha_v, alpha_attr))
-        return real(self, obs, alpha_v, alpha_attr)
-
-    monkeypatch.setattr(G.FrozenEncoder, "forward", spy)
+    pick = lambda obs, alpha_v=0.5, alpha_attr=0.5: (alpha_v, alpha_attr)  # noqa: E731
+    seen = record_calls(monkeypatch, G.FrozenEncoder, "forward", pick)
     for drop in ("vision", "attr", "none"):
         seen.clear()
         G.main(ss_args(pretrained, eval_only=True, checkpoint=str(agent), drop=drop, eval_episodes=2))

@@ -7,7 +7,14 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import assert_episodes_separated, interrupt_run, previous_layout, run_script, tiny_agent_args
+from conftest import (
+    assert_episodes_separated,
+    interrupt_run,
+    previous_layout,
+    record_calls,
+    run_script,
+    tiny_agent_args,
+)
 
 import gw_dreamer_e2e as E
 import pretrain_vae_gw as P
@@ -255,14 +262,7 @@ def test_eval_only_encodes_every_observation_with_the_drop_it_was_given(ss_run, 
     """Every observation of an --eval-only run is fused into z with --drop's weights. Fails if the
     evaluation ignores --drop."""
     _, _, agent = ss_run
-    seen = []
-    real = E.Agent.z
-
-    def spy(self, u_v, u_attr, drop="none"):
-        seen.append(drop)
-        return real(self, u_v, u_attr, drop)
-
-    monkeypatch.setattr(E.Agent, "z", spy)
+    seen = record_calls(monkeypatch, E.Agent, "z", lambda u_v, u_attr, drop="none": drop)
     for drop in ("vision", "attr", "none"):
         seen.clear()
         E.main(ss_args(pretrained, eval_only=True, checkpoint=str(agent), drop=drop, eval_episodes=2))

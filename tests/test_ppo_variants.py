@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from conftest import run_script
+from conftest import record_calls, run_script
 
 import ppo_variants as PPO
 
@@ -218,14 +218,7 @@ def test_eval_only_feeds_every_observation_through_the_drop_it_was_given(ss_runs
     """Every observation of an --eval-only run reaches the policy through --drop (zeroed input, or the
     GW's fusion weights). Fails if the evaluation ignores --drop."""
     tmp, _ = ss_runs
-    seen = []
-    real = PPO.Observer.forward
-
-    def spy(self, obs, drop, dev):
-        seen.append(drop)
-        return real(self, obs, drop, dev)
-
-    monkeypatch.setattr(PPO.Observer, "forward", spy)
+    seen = record_calls(monkeypatch, PPO.Observer, "forward", lambda obs, drop, dev: drop)
     for drop in ("vision", "attr", "none"):
         seen.clear()
         args = PPO.Args(variant="gw", checkpoint_dir=str(tmp / "ck"), eval_only=True, drop=drop)
