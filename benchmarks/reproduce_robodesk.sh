@@ -23,18 +23,9 @@ DRY_RUN=${DRY_RUN:-0}
 PRETRAIN=${PRETRAIN:-0}
 REPO="$(cd "$(dirname "$0")/.." && pwd)"
 export MUJOCO_GL=${MUJOCO_GL:-egl}
-if [ "$DRY_RUN" != 1 ]; then
-  if [ -e "$OUT" ]; then echo "error: $OUT exists; choose another OUT=" >&2; exit 2; fi
-  mkdir -p "$OUT/logs"
-fi
-
-# Run a command inside $OUT (or print it), its output to logs/<name>.log.
-step() {
-  local name=$1; shift
-  if [ "$DRY_RUN" = 1 ]; then echo "$*"; return 0; fi
-  echo "$*" > "$OUT/logs/$name.log"
-  (cd "$OUT" && "$@") >> "$OUT/logs/$name.log" 2>&1 || echo "failed (exit $?): $* (see $OUT/logs/$name.log)"
-}
+# $OUT refused if it exists, and step (run a command inside $OUT, its output in logs/<name>.log).
+# shellcheck source=benchmarks/reproduce_common.sh
+source "$REPO/benchmarks/reproduce_common.sh"
 
 # 1. Pre-training (optional): without it the agents read the bundled envs/pretrained/robodesk/.
 if [ "$PRETRAIN" = 1 ]; then
