@@ -18,7 +18,9 @@ a stop-gradient in the heads, the true attributes as z_t) live in benchmarks/exp
 
 from __future__ import annotations
 
+import atexit
 import copy
+import hashlib
 import math
 import os
 import random
@@ -410,10 +412,38 @@ def load_encoder(
     """The frozen encoder from the checkpoints of pretrain_vae_gw.py, checked against ``env``."""
     vae = load_pretrained(vae_path, "vae", env, "collect vae gw", checkpoint_dir, task)  # the GW needs it too
     gw = load_pretrained(gw_path, "gw", env, "gw", checkpoint_dir, task)
+    check_gw_vae_pair(vae, gw, vae_path, gw_path, checkpoint_dir)
     try:
         return FrozenEncoder(env, vae, gw)
     except RuntimeError as err:  # a state dict of other sizes
         raise UsageError(f"{vae_path} / {gw_path} do not fit the {env} networks: {err}") from err
+
+
+def vae_digest(vae: dict) -> str:
+    """Identity of a VAE checkpoint's weights: SHA-256 of its tensors with floating ones rounded to
+    float16, the precision of the bundled copies, so that a bundled VAE keeps the digest of its source."""
+    h = hashlib.sha256()
+    for part in ("vae_v", "vae_attr"):
+        for key, t in sorted(vae[part].items()):
+            t = t.detach().cpu()
+            h.update(key.encode() + (t.half() if torch.is_floating_point(t) else t).numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
+def check_gw_vae_pair(vae: dict, gw: dict, vae_path: Path, gw_path: Path, checkpoint_dir: str) -> None:
+    """A GW reads the latents of the VAE it was trained on (pretrain_vae_gw.py records that VAE's digest);
+    with any other VAE its z means nothing, so a mismatch stops the run."""
+    if gw.get("vae_digest", vae_digest(vae)) != vae_digest(vae):
+        made = gw.get("args", {})  # the GW's own flags: its scale and the data it read
+        extra = " --cpu-preset" if made.get("cpu_preset") else ""
+        extra += f" --data-dir {made['data_dir']}" if made.get("data_dir", "data") != "data" else ""
+        extra += f" --loss-preset {gw.get('preset', 'gw')} --overwrite"
+        extra += "" if checkpoint_dir == "checkpoints" else f" --checkpoint-dir {checkpoint_dir}"
+        remake = f"python pretrain_vae_gw.py --env {gw['env']} --stages gw{extra}"
+        raise UsageError(
+            f"{gw_path} was trained on the latents of another VAE than {vae_path} (the VAE was remade "
+            f"after it): retrain the GW on this VAE with `{remake}`"
+        )
 
 
 FUSION = {"none": (0.5, 0.5), "vision": (0.0, 1.0), "attr": (1.0, 0.0)}  # (alpha_v, alpha_attr)
@@ -1133,7 +1163,9 @@ def ensure_writable(folder: Path) -> None:
 
 def claim_outputs(paths: list[Path], resume: bool, overwrite: bool) -> None:
     """A new run stops before it would overwrite an earlier run's checkpoint or mix its TensorBoard
-    events with that run's; --overwrite removes them on purpose, --resume continues the run they hold."""
+    events with that run's; --overwrite removes them on purpose, --resume continues the run they hold.
+    A run that is still training holds a lock (``take_lock``), so no second process writes the same run."""
+    take_lock(paths[0].with_name(f".{paths[0].name}.lock"))
     existing = [p for p in paths if p.exists()]
     if resume or not existing:
         return
@@ -1144,6 +1176,37 @@ def claim_outputs(paths: list[Path], resume: bool, overwrite: bool) -> None:
         )
     for p in existing:
         shutil.rmtree(p) if p.is_dir() else p.unlink()
+
+
+def take_lock(lock: Path) -> None:
+    """Hold ``lock`` (a file with this process's id) until the process exits. A lock whose process is
+    alive stops this run; one left by a process that died without cleaning up (kill -9) is taken over."""
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    while True:
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+            break
+        except FileExistsError:
+            text = lock.read_text().strip() if lock.is_file() else ""
+            pid = int(text) if text.isdigit() else 0
+            if pid == os.getpid():
+                return
+            try:
+                os.kill(pid, 0) if pid > 0 else None
+                alive = pid > 0
+            except ProcessLookupError:
+                alive = False
+            except PermissionError:  # another user's live process
+                alive = True
+            if alive:
+                raise UsageError(
+                    f"process {pid} is training this run now (lock {lock}): wait for it to end, or stop it "
+                    "(Ctrl-C saves) and continue with --resume"
+                ) from None
+            lock.unlink(missing_ok=True)  # stale: its process is gone
+    os.write(fd, str(os.getpid()).encode())
+    os.close(fd)
+    atexit.register(lambda: lock.unlink(missing_ok=True))
 
 
 def setting_changes(saved: dict, now: dict, keys) -> list[str]:

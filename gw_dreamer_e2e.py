@@ -17,6 +17,7 @@ alpha_v = alpha_attr = 0.5 from the updated GW, then the actor-critic on dreams,
 
 from __future__ import annotations
 
+import atexit
 import copy
 import math
 import os
@@ -1246,7 +1247,9 @@ def ensure_writable(folder: Path) -> None:
 
 def claim_outputs(paths: list[Path], resume: bool, overwrite: bool) -> None:
     """A new run stops before it would overwrite an earlier run's checkpoint or mix its TensorBoard
-    events with that run's; --overwrite removes them on purpose, --resume continues the run they hold."""
+    events with that run's; --overwrite removes them on purpose, --resume continues the run they hold.
+    A run that is still training holds a lock (``take_lock``), so no second process writes the same run."""
+    take_lock(paths[0].with_name(f".{paths[0].name}.lock"))
     existing = [p for p in paths if p.exists()]
     if resume or not existing:
         return
@@ -1257,6 +1260,37 @@ def claim_outputs(paths: list[Path], resume: bool, overwrite: bool) -> None:
         )
     for p in existing:
         shutil.rmtree(p) if p.is_dir() else p.unlink()
+
+
+def take_lock(lock: Path) -> None:
+    """Hold ``lock`` (a file with this process's id) until the process exits. A lock whose process is
+    alive stops this run; one left by a process that died without cleaning up (kill -9) is taken over."""
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    while True:
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+            break
+        except FileExistsError:
+            text = lock.read_text().strip() if lock.is_file() else ""
+            pid = int(text) if text.isdigit() else 0
+            if pid == os.getpid():
+                return
+            try:
+                os.kill(pid, 0) if pid > 0 else None
+                alive = pid > 0
+            except ProcessLookupError:
+                alive = False
+            except PermissionError:  # another user's live process
+                alive = True
+            if alive:
+                raise UsageError(
+                    f"process {pid} is training this run now (lock {lock}): wait for it to end, or stop it "
+                    "(Ctrl-C saves) and continue with --resume"
+                ) from None
+            lock.unlink(missing_ok=True)  # stale: its process is gone
+    os.write(fd, str(os.getpid()).encode())
+    os.close(fd)
+    atexit.register(lambda: lock.unlink(missing_ok=True))
 
 
 def setting_changes(saved: dict, now: dict, keys) -> list[str]:

@@ -20,6 +20,7 @@ the one-process result for the same global batch (``--vae-batch-size``, ``--gw-b
 from __future__ import annotations
 
 import ctypes
+import hashlib
 import inspect
 import json
 import math
@@ -411,14 +412,46 @@ def data_identity(args: Args) -> dict:
     return out | {"expert_checkpoint": [str(p) for p in args.expert_checkpoint]}
 
 
-def stage_identity(args: Args, stage: str, vae_fingerprint: float | None = None) -> dict:
-    """The settings that define the vae or gw stage's result: its own flags, the data's, and (gw) the
-    weights of the VAEs it encodes with."""
+def stage_identity(args: Args, stage: str, vae: dict | None = None) -> dict:
+    """What defines the vae or gw stage's result: its own flags, the data's collection settings, the data
+    it reads (``data_read``: samples and a digest of the shards' names and sizes) and (gw) the VAE whose
+    latents it learns from (``vae_digest``)."""
     keys = VAE_KEYS if stage == "vae" else GW_KEYS
-    out = {k: getattr(args, k) for k in keys} | data_identity(args)
+    out = {k: getattr(args, k) for k in keys} | data_identity(args) | {"data_read": data_read(args)}
     if stage == "vae" and args.stream_shards:  # streamed batches are other batches (the gw stage's are not)
         out["stream_shards"] = args.stream_shards
-    return out | ({"vae_fingerprint": vae_fingerprint} if stage == "gw" else {})
+    return out | ({"vae_digest": vae_digest(vae)} if stage == "gw" else {})
+
+
+def data_read(args: Args) -> str:
+    """The data a stage reads: "<samples> samples, shards <digest of their names and sizes>"."""
+    h = hashlib.sha256()
+    for p in shard_paths(env_dir(args.data_dir, args)):
+        h.update(f"{p.name}:{p.stat().st_size};".encode())
+    return f"{data_size(args)} samples, shards {h.hexdigest()[:12]}"
+
+
+def vae_digest(vae: dict) -> str:
+    """Identity of a VAE checkpoint's weights: SHA-256 of its tensors with floating ones rounded to
+    float16, the precision of the bundled copies, so that a bundled VAE keeps the digest of its source."""
+    h = hashlib.sha256()
+    for part in ("vae_v", "vae_attr"):
+        for key, t in sorted(vae[part].items()):
+            t = t.detach().cpu()
+            h.update(key.encode() + (t.half() if torch.is_floating_point(t) else t).numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
+def identity_changes(saved: dict, now: dict) -> list[str]:
+    """How a saved stage identity differs from this command's: ``--flag value`` for flags, words for the
+    data read and the VAE."""
+    flags = [k for k in now if k not in ("data_read", "vae_digest")]
+    out = setting_changes(saved, now, flags)
+    if "data_read" in saved and saved["data_read"] != now["data_read"]:
+        out.append(f"other data ({saved['data_read']}; the data folder now holds {now['data_read']})")
+    if "vae_digest" in saved and saved["vae_digest"] != now["vae_digest"]:
+        out.append("another VAE (vae.pt was remade since)")
+    return out
 
 
 def check_data(folder: Path, args: Args) -> None:
@@ -449,7 +482,9 @@ def stage_is_done(path: Path, identity: dict, args: Args) -> bool:
     if saved == identity:
         print(f"[{path.stem}] {path} was made with these settings: stage skipped")
         return True
-    changed = setting_changes(saved, identity, identity) if saved else ["(settings not recorded)"]
+    changed = (
+        (identity_changes(saved, identity) or ["(an older record)"]) if saved else ["(settings not recorded)"]
+    )
     raise UsageError(
         f"{path} already exists, made with {' '.join(changed)}: use it as it is (leave its stage out of "
         "--stages), write to another --checkpoint-dir, or add --overwrite to replace it"
@@ -468,8 +503,9 @@ def resume_partial(partial: Path, identity: dict, args: Args, stage: str) -> dic
             reason = str(err).split("; ")[0]
             raise UsageError(f"{reason}: add --overwrite to start the unfinished {stage} stage over") from err
         ck = {}
-    changed = setting_changes(ck.get("identity", {}), identity, identity)
+    changed = identity_changes(ck.get("identity", {}), identity)
     changed += [] if "identity" in ck else ["(settings not recorded)"]
+    changed += ["(an older record)"] if ck.get("identity", identity) != identity and not changed else []
     if not changed:
         print(f"[{stage}] continuing the unfinished stage in {partial} from step {ck['step']:,}")
         return ck
@@ -1310,16 +1346,23 @@ ATTR_STD_FLOOR = 1e-3
 # held-out ones worse (docs/pretrain_vae_gw.md). Such a dimension's scale is widened until
 # ATTR_TAIL[0] % of the samples lie within +-ATTR_TAIL[1].
 ATTR_TAIL = (99.9, 3.0)
+# The end effector's position (attr 18-20) in units of 2 cm rather than of its std (17-32 cm): an agent
+# action moves it by 1-4 cm, and every dense reward is linear in its distance to a target. Scaled by its
+# std it weighs 3/76 of the attribute VAE's squared error, which then reconstructs it within 5.6 cm (10 cm
+# on 44,000 samples); in 2 cm units within 2.1 cm on those samples (docs/pretrain_vae_gw.md).
+END_EFFECTOR_ATTRS, END_EFFECTOR_UNIT = slice(18, 21), 0.02
 
 
 def normaliser(attr: np.ndarray, env: str) -> tuple[np.ndarray, np.ndarray]:
     """Simple Shapes attributes are already in [-1, 1]; RoboDesk's are centred and scaled by their std,
-    floored at ATTR_STD_FLOOR and widened for heavy tails (ATTR_TAIL)."""
+    floored at ATTR_STD_FLOOR and widened for heavy tails (ATTR_TAIL), except the end effector's
+    position, in END_EFFECTOR_UNIT metres."""
     if env == "simple_shapes":
         return np.zeros(attr.shape[1], np.float32), np.ones(attr.shape[1], np.float32)
     mean = attr.mean(0, dtype=np.float64)
     tail = np.percentile(np.abs(attr - mean), ATTR_TAIL[0], axis=0) / ATTR_TAIL[1]
     scale = np.maximum(np.maximum(attr.std(0, dtype=np.float64), ATTR_STD_FLOOR), tail)
+    scale[END_EFFECTOR_ATTRS] = END_EFFECTOR_UNIT
     return mean.astype(np.float32), scale.astype(np.float32)
 
 
@@ -1527,8 +1570,7 @@ def encode_unimodal(vae_v, vae_attr, images, attrs_n, device, batch: int = 1024)
 def train_gw(args: Args, writer: SummaryWriter, stop: StopRequest) -> None:
     vae_v, vae_attr, vae_ckpt = load_vaes(env_dir(args.checkpoint_dir, args) / "vae.pt", args.env)
     path = env_dir(args.checkpoint_dir, args) / f"{args.loss_preset}.pt"
-    fingerprint = float(sum(p.double().sum() for p in [*vae_v.parameters(), *vae_attr.parameters()]))
-    identity = stage_identity(args, "gw", fingerprint)
+    identity = stage_identity(args, "gw", vae_ckpt)
     if stage_is_done(path, identity, args):
         return
     rank, world = start_processes(args)
@@ -1600,6 +1642,7 @@ def train_gw(args: Args, writer: SummaryWriter, stop: StopRequest) -> None:
             "args": asdict(args),
             "gw": gw.state_dict(),
             "vae_checkpoint": str(env_dir(args.checkpoint_dir, args) / "vae.pt"),
+            "vae_digest": identity["vae_digest"],  # the VAE it was trained on, checked by every reader
             "data": vae_ckpt["data"],
             "eval": figures,
         },

@@ -78,6 +78,13 @@ def main(a: Args) -> None:
     bundle.mkdir(parents=True, exist_ok=True)
     vae = torch.load(src / "vae.pt", map_location="cpu", weights_only=False)
     gw = torch.load(src / "gw.pt", map_location="cpu", weights_only=False)
+    if "vae_digest" not in gw:  # a GW made before pretrain_vae_gw.py recorded its VAE's digest
+        vae_v, vae_attr, _ = P.load_vaes(src / "vae.pt", a.env)
+        made_on = gw["identity"]["vae_fingerprint"]  # the sum of the VAE's weights it was trained on
+        now = float(sum(p.double().sum() for p in [*vae_v.parameters(), *vae_attr.parameters()]))
+        if abs(made_on - now) > 1e-9 * max(1.0, abs(now)):
+            raise SystemExit(f"{src / 'gw.pt'} was trained on another VAE than {src / 'vae.pt'}")
+        gw["vae_digest"] = P.vae_digest(vae)
     vae["vae_v"], vae["vae_attr"], gw["gw"] = half(vae["vae_v"]), half(vae["vae_attr"]), half(gw["gw"])
     gw["vae_checkpoint"] = f"envs/pretrained/{a.env}/vae.pt"
     torch.save(vae, bundle / "vae.pt")

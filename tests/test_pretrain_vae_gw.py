@@ -322,7 +322,8 @@ def test_robodesk_collection_interleaves_the_sources():
 
 def test_robodesk_attribute_scale_floors_still_dimensions_and_widens_spiking_ones():
     """A dimension still most of the time that spikes on contact (an object's velocity) is scaled so
-    that 99.9% of its samples lie within +-3; a spread one keeps its std; a constant one the floor."""
+    that 99.9% of its samples lie within +-3; a spread one keeps its std; a constant one the floor; the
+    end effector's position is in 2 cm units whatever its spread (fails if it is scaled by its std)."""
     rng = np.random.default_rng(0)
     n = 100_000
     attr = np.zeros((n, 76), np.float32)
@@ -334,6 +335,8 @@ def test_robodesk_attribute_scale_floors_still_dimensions_and_widens_spiking_one
     assert scale[1] == pytest.approx(5.0 / 3, rel=1e-3)  # widened from 0.5
     assert scale[2] == P.ATTR_STD_FLOOR
     assert np.abs((attr[:, 1] - mean[1]) / scale[1]).max() <= 3.001
+    attr[:, 18:21] = rng.uniform(-0.3, 0.3, (n, 3))  # the end effector, std 17 cm
+    assert (P.normaliser(attr, "robodesk")[1][18:21] == np.float32(0.02)).all()
     zeros, ones = P.normaliser(attr[:, :11], "simple_shapes")
     assert not zeros.any() and (ones == 1).all()
 

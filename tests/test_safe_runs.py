@@ -311,3 +311,85 @@ def test_stage_identity_covers_the_data_and_the_vaes():
     assert ident != P.stage_identity(P.Args(env="simple_shapes", wide_share=0.5).resolve(), "gw", 1.0)
     assert ident != P.stage_identity(P.Args(env="simple_shapes", gw_lr=1e-3).resolve(), "gw", 1.0)
     assert ident == P.stage_identity(P.Args(env="simple_shapes", log_every=7).resolve(), "gw", 1.0)
+
+
+# 7. Silent mix-ups of pre-trained files ----------
+def test_a_gw_of_another_vae_is_refused_by_pretraining_and_by_the_agents(pretrained, tmp_path):
+    """After `--stages vae --overwrite` remakes the VAE, the GW trained on the old one's latents is refused
+    by `--stages gw` (named as another VAE, not as a flag) and by GW-Dreamer and GW-PPO, whose hint
+    retrains the GW on the same data. Fails if a reader skips check_gw_vae_pair or the gw stage stops
+    recording the VAE's digest."""
+    ck = tmp_path / "ck" / "simple_shapes"
+    shutil.copytree(pretrained[0] / "ck" / "simple_shapes", ck, ignore=shutil.ignore_patterns("agents"))
+    flags = [
+        "--data-dir",
+        str(pretrained[0] / "data"),
+        "--checkpoint-dir",
+        str(tmp_path / "ck"),
+        *TINY_PRETRAIN,
+    ]
+    gw = (ck / "gw.pt").read_bytes()
+    run_script("pretrain_vae_gw.py", tmp_path, "--env", "simple_shapes", "--stages", "vae", *flags,
+               "--vae-steps", "13", "--overwrite")  # fmt: skip
+    out = run_cli("pretrain_vae_gw.py", tmp_path, "--env", "simple_shapes", "--stages", "gw", *flags)
+    assert_refused(out, str(ck / "gw.pt"), "another VAE (vae.pt was remade since)", "--overwrite")
+    assert "--vae-" not in out.stderr and (ck / "gw.pt").read_bytes() == gw
+    hint = f"--stages gw --data-dir {pretrained[0] / 'data'} --loss-preset gw --overwrite --checkpoint-dir"
+    for script in ("gw_dreamer.py", "ppo_variants.py"):
+        ours = ["--checkpoint-dir", str(tmp_path / "ck"), "--checkpoint", str(tmp_path / "agent.pt")]
+        out = run_cli(script, tmp_path, "--env", "simple_shapes", *ours, *AGENT_TINY[script])
+        assert_refused(out, f"{ck / 'gw.pt'} was trained on the latents of another VAE than", hint)
+        assert not (tmp_path / "agent.pt").exists()
+
+
+def test_a_vae_records_the_data_it_read_and_refuses_to_stand_for_grown_data(pretrained, tmp_path):
+    """The vae stage's record holds the samples it read; after the data folder grows, the old vae.pt is
+    no longer "made with these settings". Fails if the identity records only the --n-samples flag."""
+    shutil.copytree(pretrained[0] / "data", tmp_path / "data")
+    shutil.copytree(pretrained[0] / "ck" / "simple_shapes", tmp_path / "ck" / "simple_shapes")
+    flags = [
+        "--env",
+        "simple_shapes",
+        "--data-dir",
+        str(tmp_path / "data"),
+        "--checkpoint-dir",
+        str(tmp_path / "ck"),
+    ]
+    vae = torch.load(tmp_path / "ck" / "simple_shapes" / "vae.pt", weights_only=False)
+    assert vae["identity"]["data_read"].startswith("600 samples, shards ")
+    same = run_script("pretrain_vae_gw.py", tmp_path, *flags, *TINY_PRETRAIN, "--stages", "vae")
+    assert "stage skipped" in same
+    run_script(
+        "pretrain_vae_gw.py", tmp_path, *flags, *TINY_PRETRAIN, "--stages", "collect", "--n-samples", "700"
+    )
+    out = run_cli("pretrain_vae_gw.py", tmp_path, *flags, *TINY_PRETRAIN, "--stages", "vae")
+    assert_refused(out, "other data (600 samples, shards", "the data folder now holds 700 samples")
+
+
+def test_a_run_still_training_holds_a_lock_that_a_second_process_cannot_take(pretrained, tmp_path):
+    """While a run trains, a second command on it (--resume) stops at start naming the process; Ctrl-C
+    releases the lock; a lock left by a process that is gone (kill -9) is taken over. Fails if
+    claim_outputs takes no lock, or cannot tell a dead holder from a live one."""
+    ck = ["--checkpoint-dir", str(pretrained[0] / "ck"), "--checkpoint", str(tmp_path / "agent.pt")]
+    long = ["--log-every", "50", "--total-steps", "3000"]
+    command = [sys.executable, str(ROOT / "gw_dreamer.py"), "--env", "simple_shapes", *ck, *GW_TINY, *long]
+    proc = subprocess.Popen(
+        command, cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
+    for line in proc.stdout:
+        if " updates " in line:  # training is under way
+            break
+    lock = tmp_path / ".agent.pt.lock"
+    assert lock.read_text() == str(proc.pid)
+    second = agent_cli("gw_dreamer.py", pretrained, tmp_path, "--resume")
+    proc.send_signal(signal.SIGINT)
+    proc.communicate(timeout=300)
+    assert_refused(second, f"process {proc.pid} is training this run now (lock {lock})", "--resume")
+    assert proc.returncode == 130 and not lock.exists()
+    gone = subprocess.Popen(["true"])
+    gone.wait()
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / ".agent.pt.lock").write_text(str(gone.pid))
+    out = agent_cli("gw_dreamer.py", pretrained, other)
+    assert out.returncode == 0 and not (other / ".agent.pt.lock").exists(), out.stdout + out.stderr

@@ -20,7 +20,7 @@ SHARED = {
         " cli".split(),
         (*AGENTS, PRETRAIN),
     ),
-    "claim_outputs": AGENTS,  # pre-training claims its outputs per stage
+    **dict.fromkeys("claim_outputs take_lock".split(), AGENTS),  # pre-training claims its outputs per stage
     "last_good": AGENTS,
     # Pre-trained checkpoints: the bundled Simple Shapes VAE + GW and the missing-checkpoint messages
     **dict.fromkeys(
@@ -32,6 +32,8 @@ SHARED = {
     # The frozen modules read from pretrain_vae_gw.py's checkpoints
     **dict.fromkeys("AttrVAE ENV_SPECS FUSION".split(), (GW, E2E, PPO)),
     "GlobalWorkspace": (GW, PPO),
+    "check_gw_vae_pair": (GW, PPO),
+    "vae_digest": (GW, PPO, PRETRAIN),
     "VisualVAE": (GW, E2E),
     # DreamerV3's pieces
     **dict.fromkeys("TwoHot symlog symexp lambda_returns action_for_env ReturnScale Dream".split(), DREAMERS),
