@@ -1437,6 +1437,9 @@ def check_settings(args: Args) -> None:
     rule = f"must be at least one agent step ({ACTION_REPEAT['robodesk']} frames)"
     require(args.episode_length >= ACTION_REPEAT["robodesk"], "episode_length", args.episode_length, rule)
     require(args.drop == "none" or args.eval_only, "drop", args.drop, "is for evaluation: add --eval-only")
+    rule = f"must be below --total-steps {args.total_steps:,}, or the run would make no update"
+    ok = args.eval_only or args.learning_starts < args.total_steps
+    require(ok, "learning_starts", args.learning_starts, rule)
     for other in ("overwrite", "eval_only"):
         if args.resume and getattr(args, other):
             raise UsageError(f"--resume continues a run; it cannot go with --{other.replace('_', '-')}")

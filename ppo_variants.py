@@ -1138,7 +1138,12 @@ def main(args: Args) -> dict:
         return evaluate_checkpoint(agent, observer, args, frozen, agent_path, dev)
     batch_size = args.num_envs * args.num_steps  # agent steps per rollout
     repeat = ACTION_REPEAT[args.env]  # env steps (the paper's unit, frames on RoboDesk) per agent step
-    num_iterations = max(args.total_steps // (batch_size * repeat), 1)
+    num_iterations = -(-args.total_steps // (batch_size * repeat))  # whole rollouts, at least total_steps
+    if (steps := num_iterations * batch_size * repeat) != args.total_steps:
+        print(
+            f"--total-steps {args.total_steps:,} is no whole number of rollouts ({batch_size * repeat:,} env "
+            f"steps each): training {num_iterations:,} rollouts, {steps:,} steps"
+        )
     run = start_run(args, observer, agent, frozen, agent_path, num_iterations)
     state, optimizer = run.state, run.optimizer
 

@@ -250,6 +250,10 @@ BAD_FLAGS = [
     ("dreamer_baseline.py", ["--wm-lr", "inf"], "--wm-lr inf: must be a finite number"),
     ("ppo_variants.py", ["--learning-rate", "inf"], "--learning-rate inf: must be a finite number"),
     ("pretrain_vae_gw.py", ["--beta-v", "inf"], "--beta-v inf: must be a finite number"),
+    *(
+        (script, ["--learning-starts", "50", "--total-steps", "50"], "--learning-starts 50: must be below")
+        for script in ("gw_dreamer.py", "gw_dreamer_e2e.py", "dreamer_baseline.py")
+    ),
 ]
 
 
@@ -306,11 +310,12 @@ def test_kill_9_during_a_save_leaves_the_previous_checkpoint_loadable(tmp_path):
 def test_stage_identity_covers_the_data_and_the_vaes():
     """The gw stage's identity changes with its own flags, the data's and the VAE weights it encodes with."""
     base = P.Args(env="simple_shapes").resolve()
-    ident = P.stage_identity(base, "gw", vae_fingerprint=1.0)
-    assert ident != P.stage_identity(base, "gw", vae_fingerprint=2.0)
-    assert ident != P.stage_identity(P.Args(env="simple_shapes", wide_share=0.5).resolve(), "gw", 1.0)
-    assert ident != P.stage_identity(P.Args(env="simple_shapes", gw_lr=1e-3).resolve(), "gw", 1.0)
-    assert ident == P.stage_identity(P.Args(env="simple_shapes", log_every=7).resolve(), "gw", 1.0)
+    vae = {"vae_v": {"w": torch.zeros(3)}, "vae_attr": {"w": torch.ones(3)}}
+    ident = P.stage_identity(base, "gw", vae)
+    assert ident != P.stage_identity(base, "gw", vae | {"vae_attr": {"w": torch.full((3,), 1.01)}})
+    assert ident != P.stage_identity(P.Args(env="simple_shapes", wide_share=0.5).resolve(), "gw", vae)
+    assert ident != P.stage_identity(P.Args(env="simple_shapes", gw_lr=1e-3).resolve(), "gw", vae)
+    assert ident == P.stage_identity(P.Args(env="simple_shapes", log_every=7).resolve(), "gw", vae)
 
 
 # 7. Silent mix-ups of pre-trained files ----------
@@ -393,3 +398,15 @@ def test_a_run_still_training_holds_a_lock_that_a_second_process_cannot_take(pre
     (other / ".agent.pt.lock").write_text(str(gone.pid))
     out = agent_cli("gw_dreamer.py", pretrained, other)
     assert out.returncode == 0 and not (other / ".agent.pt.lock").exists(), out.stdout + out.stderr
+
+
+def test_ppo_trains_at_least_the_steps_asked_in_whole_rollouts(pretrained, tmp_path):
+    """--total-steps 40 with rollouts of 32 steps: two rollouts (64 steps), said at start. Fails if the
+    total is rounded down (one rollout, 32 steps) or changed silently."""
+    out = agent_cli("ppo_variants.py", pretrained, tmp_path, "--total-steps", "40")
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert (
+        "--total-steps 40 is no whole number of rollouts (32 env steps each): training 2 rollouts, 64"
+        in out.stdout
+    )
+    assert torch.load(tmp_path / "agent.pt", weights_only=False)["state"]["env_steps"] == 64
