@@ -617,6 +617,21 @@ def take_lock(lock: Path) -> None:
     atexit.register(lambda: lock.unlink(missing_ok=True))
 
 
+def check_unrecorded(path: Path, saved: dict, args, may_change) -> None:
+    """A checkpoint made before a flag existed does not record it, and what that run did in its place is
+    unknown; it continues only at the flag's default (the tables' value for the run's recorded settings)."""
+    now = vars(args)
+    made = type(args)(**{k: v for k, v in saved.items() if k in now})  # the run, new flags at default
+    default = vars(made.resolve() if hasattr(made, "resolve") else made)
+    odd = [k for k in now if k not in saved and k not in may_change and now[k] != default[k]]
+    if odd:
+        flags = " ".join(f"--{k.replace('_', '-')} {now[k]}" for k in odd)
+        raise UsageError(
+            f"{path} was made by an older version that does not record {flags}, so that run continues only "
+            "at their defaults: leave them out"
+        )
+
+
 def setting_changes(saved: dict, now: dict, keys) -> list[str]:
     """``--flag value`` of each setting in ``keys`` whose saved value differs from this command's."""
     out = []
@@ -780,6 +795,8 @@ def load_agent_checkpoint(path: Path, args: Args, frozen: dict) -> dict:
             f"{path} was made with {' '.join(changed)}, which differ from this command: give the same "
             "settings to continue that run, or start a separate one (another --exp-name or --seed)"
         )
+    if args.resume:
+        check_unrecorded(path, saved, args, MAY_CHANGE)
     return ckpt
 
 

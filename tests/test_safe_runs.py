@@ -128,6 +128,21 @@ def test_resume_refuses_changed_settings_and_accepts_a_longer_run(gw_run, pretra
     assert torch.load(cont / "agent.pt", weights_only=False)["state"]["env_steps"] == 60
 
 
+def test_a_checkpoint_without_a_newer_flag_resumes_only_at_its_default(gw_run, pretrained):
+    """An agent saved before --actor-mean-reg existed (the key taken out of its args) continues at the
+    flag's default and refuses another value. Fails if flags the checkpoint lacks accept any value."""
+    cwd, agent, _ = gw_run
+    old = cwd / "older"
+    old.mkdir()
+    ck = torch.load(agent, weights_only=False)
+    del ck["args"]["actor_mean_reg"]
+    torch.save(ck, old / "agent.pt")
+    out = agent_cli("gw_dreamer.py", pretrained, old, "--resume", "--actor-mean-reg", "0.5")
+    assert_refused(out, "older version that does not record --actor-mean-reg 0.5", "leave them out")
+    out = agent_cli("gw_dreamer.py", pretrained, old, "--resume", "--total-steps", "60", "--log-every", "7")
+    assert out.returncode == 0 and "resuming" in out.stdout, out.stdout + out.stderr
+
+
 # 4. Data and agents of another task ----------
 def test_collect_refuses_data_of_other_settings(pretrained, pretrained_robodesk, tmp_path):
     folder = pretrained[0] / "data" / "simple_shapes"

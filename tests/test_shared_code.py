@@ -20,7 +20,8 @@ SHARED = {
         " cli".split(),
         (*AGENTS, PRETRAIN),
     ),
-    **dict.fromkeys("claim_outputs take_lock".split(), AGENTS),  # pre-training claims its outputs per stage
+    # pre-training claims its outputs per stage
+    **dict.fromkeys("claim_outputs take_lock check_unrecorded".split(), AGENTS),
     "last_good": AGENTS,
     # Pre-trained checkpoints: the bundled Simple Shapes VAE + GW and the missing-checkpoint messages
     **dict.fromkeys(
