@@ -20,6 +20,7 @@ Inputs per variant (4 stacked frames each):
 from __future__ import annotations
 
 import atexit
+import errno
 import hashlib
 import math
 import os
@@ -536,12 +537,19 @@ def atomic_save(obj: dict, path: Path) -> None:
     kill -9) leaves the previous file whole, and two processes never share a temporary file."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    kept = f"the previous {path.name} is kept" if path.exists() else f"no {path.name} was written"
     try:
         with open(tmp, "wb") as f:
             torch.save(obj, f)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
+    except KeyboardInterrupt:  # a second Ctrl-C: stop at once
+        raise KeyboardInterrupt(f"while saving {path}; {kept}") from None
+    except (OSError, RuntimeError) as err:  # torch reports a full disk as "unexpected pos"
+        full = getattr(err, "errno", None) == errno.ENOSPC or "unexpected pos" in str(err)
+        cause = "no space left on the device" if full else " ".join(str(err).split())[:200]
+        raise UsageError(f"cannot save {path} ({cause}); {kept}") from err
     finally:
         tmp.unlink(missing_ok=True)
 
@@ -686,8 +694,8 @@ def cli(main, args_type) -> None:
     except UsageError as err:
         print(f"error: {err}", file=sys.stderr, flush=True)
         raise SystemExit(2) from None
-    except KeyboardInterrupt:
-        print("interrupted", flush=True)
+    except KeyboardInterrupt as err:
+        print(f"interrupted {err}".strip(), flush=True)
         raise SystemExit(130) from None
 
 

@@ -2,6 +2,7 @@
 bad input stops at start with one line (exit code 2), Ctrl-C exits 130 with the work saved, and a save
 killed half-way leaves the previous checkpoint whole. docs/safe_runs.md lists what each case shows."""
 
+import errno
 import json
 import shutil
 import signal
@@ -320,6 +321,45 @@ def test_kill_9_during_a_save_leaves_the_previous_checkpoint_loadable(tmp_path):
     assert [p.name for p in tmp_path.iterdir() if p.suffix == ".tmp"] == [f".agent.pt.{proc.pid}.tmp"]
     G.atomic_save({"version": 3}, path)
     assert torch.load(path, weights_only=False) == {"version": 3}
+
+
+@pytest.mark.parametrize("fault", ["full disk", "torch's full disk", "second Ctrl-C"])
+def test_a_failed_save_says_why_keeps_the_previous_checkpoint_and_leaves_no_partial(
+    fault, tmp_path, monkeypatch, capsys
+):
+    """A full disk (OSError ENOSPC, or torch's "unexpected pos") is one line naming the file and the cause;
+    a second Ctrl-C stops at once, saying which save it cut; the previous checkpoint loads and no .tmp is
+    left. Fails if atomic_save lets the raw error through or forgets its temporary file."""
+    import gw_dreamer as G
+
+    path = tmp_path / "agent.pt"
+    G.atomic_save({"version": 1}, path)
+
+    def broken_save(obj, f):
+        f.write(b"the first bytes")
+        if fault == "full disk":
+            raise OSError(errno.ENOSPC, "No space left on device")
+        if fault == "torch's full disk":
+            raise RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 64 vs 0")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(G.torch, "save", broken_save)
+    monkeypatch.setattr(sys, "argv", ["gw_dreamer.py"])
+    with pytest.raises(SystemExit) as stop:
+        G.cli(lambda _: G.atomic_save({"version": 2}, path), G.Args)  # parse the Args, then the save
+    monkeypatch.undo()
+    out = capsys.readouterr()
+    if fault == "second Ctrl-C":
+        assert stop.value.code == 130
+        assert out.out == f"interrupted while saving {path}; the previous agent.pt is kept\n"
+    else:
+        assert stop.value.code == 2
+        assert (
+            out.err
+            == f"error: cannot save {path} (no space left on the device); the previous agent.pt is kept\n"
+        )
+    assert torch.load(path, weights_only=False) == {"version": 1}
+    assert [p.name for p in tmp_path.iterdir()] == ["agent.pt"]
 
 
 def test_stage_identity_covers_the_data_and_the_vaes():
