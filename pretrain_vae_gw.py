@@ -19,6 +19,7 @@ the one-process result for the same global batch (``--vae-batch-size``, ``--gw-b
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import errno
 import hashlib
@@ -31,6 +32,8 @@ import signal
 import sys
 import threading
 import time
+import zipfile
+import zlib
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -472,7 +475,14 @@ def check_data(folder: Path, args: Args) -> None:
             f"{folder} holds data without a manifest.json, so the settings it was collected with are "
             "unknown: collect into another --data-dir (or delete that folder)"
         )
-    changed = setting_changes(json.loads(manifest.read_text()), data_identity(args), data_identity(args))
+    try:
+        recorded = json.loads(manifest.read_text())
+    except (OSError, ValueError) as err:  # JSONDecodeError is a ValueError
+        raise UsageError(
+            f"cannot read {manifest} ({type(err).__name__}): it is damaged; write back the settings the data "
+            "were collected with, or collect into another --data-dir"
+        ) from err
+    changed = setting_changes(recorded, data_identity(args), data_identity(args))
     if changed:
         raise UsageError(
             f"{folder} holds data collected with {' '.join(changed)}: give the same settings to use it, "
@@ -610,11 +620,26 @@ def write_shard(folder: Path, image: np.ndarray, attr: np.ndarray, source, task=
     return path
 
 
+@contextlib.contextmanager
+def read_shard(path: Path):
+    """``np.load`` of one data shard; a damaged one (cut short, not a zip, a member missing) stops the run
+    with one line that names it."""
+    try:
+        with np.load(path) as d:
+            yield d
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as err:
+        brief = " ".join(str(err).split())[:120]
+        raise UsageError(
+            f"cannot read the data shard {path} ({type(err).__name__}: {brief}): it is damaged; delete it "
+            "and run the collect stage again, which collects the samples that are missing"
+        ) from err
+
+
 def load_labels(folder: Path) -> tuple[np.ndarray, np.ndarray]:
     """Per-sample (source, task) of every shard of ``folder``, in the order of ``load_data``."""
     sources, tasks = [], []
     for p in shard_paths(folder):
-        with np.load(p) as d:
+        with read_shard(p) as d:
             n = len(d["attr"])
             sources.append(np.broadcast_to(d["source"], (n,)))
             tasks.append(np.broadcast_to(d["task"], (n,)) if "task" in d else np.full(n, ""))
@@ -641,7 +666,7 @@ def load_data(folder: Path, env: str) -> tuple[np.ndarray, np.ndarray]:
     spec = ENV_SPECS[env]
     images, attrs = [], []
     for p in paths:
-        with np.load(p) as d:
+        with read_shard(p) as d:
             img, attr = d["image"], d["attr"]
         if img.dtype != np.uint8 or img.shape[1:] != (spec["image"], spec["image"], 3):
             raise UsageError(f"{p}: images {img.dtype} {img.shape[1:]} do not match env {env}")
@@ -661,7 +686,7 @@ def collect(args: Args, stop: StopRequest) -> None:
     os.replace(tmp, folder / "manifest.json")
     have = 0
     for p in shard_paths(folder):
-        with np.load(p) as d:  # reads only the attribute array, and closes the file
+        with read_shard(p) as d:  # reads only the attribute array, and closes the file
             have += len(d["attr"])
     need = args.n_samples - have
     if need <= 0:
@@ -989,7 +1014,7 @@ class Streamed:
             load_data(folder, env)  # its message: no shards, and the command that collects them
         self.sizes = []
         for p in self.paths:
-            with np.load(p) as d:  # the attribute member only
+            with read_shard(p) as d:  # the attribute member only
                 self.sizes.append(len(d["attr"]))
         self.starts = np.cumsum([0, *self.sizes[:-1]])  # global index of each shard's first sample
         self.k = min(k, len(self.paths))
@@ -1007,7 +1032,7 @@ class Streamed:
     def shard(self, i: int, train: bool) -> tuple[np.ndarray, np.ndarray]:
         """Shard i, checked; with ``train`` its held-out samples are removed."""
         spec = ENV_SPECS[self.env]
-        with np.load(self.paths[i]) as d:
+        with read_shard(self.paths[i]) as d:
             img, attr = d["image"], d["attr"]
         if img.dtype != np.uint8 or img.shape[1:] != (spec["image"], spec["image"], 3):
             raise UsageError(
@@ -1074,7 +1099,7 @@ class Streamed:
         parts = []
         for i in range(len(self.paths)):  # the attribute members only (0.3 kB per RoboDesk sample)
             keep = max(0, self.n_eval - self.starts[i])
-            with np.load(self.paths[i]) as d:
+            with read_shard(self.paths[i]) as d:
                 parts.append(d["attr"][keep:])
         return normaliser(np.concatenate(parts), self.env)
 
@@ -1094,7 +1119,7 @@ def data_size(args: Args) -> int:
     """Samples in the data folder, read from the shards' attribute members only."""
     total = 0
     for p in shard_paths(env_dir(args.data_dir, args)):
-        with np.load(p) as d:
+        with read_shard(p) as d:
             total += len(d["attr"])
     return total
 

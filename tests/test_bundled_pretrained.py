@@ -66,6 +66,9 @@ def test_the_robodesk_bundle_reproduces_its_recorded_held_out_figures_and_carrie
             assert figures[key] == pytest.approx(value, rel=1e-3, abs=1e-4), key
     for group in ("end_effector", "button_green"):
         assert figures[f"fused_{group}_r2"] >= 0.9, group
+    assert figures["fused_end_effector_error_cm"] < 3.0  # an agent action moves it 1-4 cm
+    vae, gw = (torch.load(ROBODESK / f, weights_only=False) for f in ("vae.pt", "gw.pt"))
+    assert gw["vae_digest"] == G.vae_digest(vae)  # the GW records the VAE it was trained on
     assert record["render_quality"] == "fast"
     assert "expert/push_green" in record["data"]  # labels "source/task"
     assert not any("push_red" in k or "push_blue" in k for k in record["data"])  # zero-shot for the GW

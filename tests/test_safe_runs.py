@@ -245,6 +245,28 @@ def test_ctrl_c_during_ppo_training_saves_and_exits_130(pretrained, tmp_path):
     assert 0 < step < 100000 and f"interrupted at env step {step:,}" in log
 
 
+def test_a_damaged_data_shard_or_manifest_is_one_line_naming_it(pretrained, tmp_path):
+    """A shard cut short (BadZipFile) and a manifest that is no JSON stop pre-training with one line that
+    names the file. Fails if np.load or json.loads errors reach the user raw."""
+    shutil.copytree(pretrained[0] / "data", tmp_path / "data")
+    folder = tmp_path / "data" / "simple_shapes"
+    flags = [
+        "--env",
+        "simple_shapes",
+        "--data-dir",
+        str(tmp_path / "data"),
+        "--checkpoint-dir",
+        str(tmp_path),
+    ]
+    shard = sorted(folder.glob("shard_*.npz"))[-1]
+    shard.write_bytes(shard.read_bytes()[:500])
+    out = run_cli("pretrain_vae_gw.py", tmp_path, *flags, *TINY_PRETRAIN, "--stages", "vae")
+    assert_refused(out, f"cannot read the data shard {shard} (BadZipFile", "run the collect stage again")
+    (folder / "manifest.json").write_text('{"env": "simple_')
+    out = run_cli("pretrain_vae_gw.py", tmp_path, *flags, *TINY_PRETRAIN, "--stages", "collect")
+    assert_refused(out, f"cannot read {folder / 'manifest.json'} (JSONDecodeError)")
+
+
 # 6. Numbers that make no sense ----------
 BAD_FLAGS = [
     ("gw_dreamer.py", ["--total-steps", "-5"], "--total-steps -5: must be at least 1"),
