@@ -1058,13 +1058,19 @@ def atomic_save(obj: dict, path: Path) -> None:
 def read_checkpoint(path: Path, remake: str) -> dict:
     """``torch.load``, or a message that names the file and the command that makes it again."""
     try:
-        return torch.load(path, map_location="cpu", weights_only=False)
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as err:  # a truncated zip, a text file, a pickle of something else: many types
         brief = " ".join(str(err).split())[:200]  # one line
         raise UsageError(
             f"cannot read {path} ({type(err).__name__}: {brief}); the file is damaged or is no checkpoint: "
             f"make it again with `{remake}`"
         ) from err
+    if not isinstance(ckpt, dict) or "kind" not in ckpt and "identity" not in ckpt:
+        raise UsageError(
+            f"{path} holds a {type(ckpt).__name__} of torch.save, not a checkpoint of these scripts: "
+            f"make one with `{remake}`"
+        )
+    return ckpt
 
 
 def ensure_writable(folder: Path) -> None:
@@ -1139,6 +1145,15 @@ def check_unrecorded(path: Path, saved: dict, args, may_change) -> None:
             f"{path} was made by an older version that does not record {flags}, so that run continues only "
             "at their defaults: leave them out"
         )
+
+
+def check_device(device: str) -> None:
+    """--device names a device this torch has (a CPU-only build has no cuda)."""
+    try:
+        torch.empty(1, device=device)
+    except (RuntimeError, AssertionError) as err:
+        brief = " ".join(str(err).split())[:120]
+        raise UsageError(f"--device {device}: this torch cannot use it ({brief}); use --device cpu") from err
 
 
 def setting_changes(saved: dict, now: dict, keys) -> list[str]:
@@ -1298,6 +1313,7 @@ def check_settings(args: Args) -> None:
     for flag, value in vars(args).items():  # inf and nan would pass every range check below
         if isinstance(value, float):
             require(math.isfinite(value), flag, value, "must be a finite number")
+    check_device(args.device)
     at_least_1 = "total_steps num_envs batch_size imag_horizon eval_every eval_episodes log_every save_every"
     at_least_1 += " smoothing deter hidden units cnn_depth layers classes"
     for flag in at_least_1.split():

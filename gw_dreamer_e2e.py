@@ -1233,13 +1233,19 @@ def atomic_save(obj: dict, path: Path) -> None:
 def read_checkpoint(path: Path, remake: str) -> dict:
     """``torch.load``, or a message that names the file and the command that makes it again."""
     try:
-        return torch.load(path, map_location="cpu", weights_only=False)
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as err:  # a truncated zip, a text file, a pickle of something else: many types
         brief = " ".join(str(err).split())[:200]  # one line
         raise UsageError(
             f"cannot read {path} ({type(err).__name__}: {brief}); the file is damaged or is no checkpoint: "
             f"make it again with `{remake}`"
         ) from err
+    if not isinstance(ckpt, dict) or "kind" not in ckpt and "identity" not in ckpt:
+        raise UsageError(
+            f"{path} holds a {type(ckpt).__name__} of torch.save, not a checkpoint of these scripts: "
+            f"make one with `{remake}`"
+        )
+    return ckpt
 
 
 def ensure_writable(folder: Path) -> None:
@@ -1314,6 +1320,15 @@ def check_unrecorded(path: Path, saved: dict, args, may_change) -> None:
             f"{path} was made by an older version that does not record {flags}, so that run continues only "
             "at their defaults: leave them out"
         )
+
+
+def check_device(device: str) -> None:
+    """--device names a device this torch has (a CPU-only build has no cuda)."""
+    try:
+        torch.empty(1, device=device)
+    except (RuntimeError, AssertionError) as err:
+        brief = " ".join(str(err).split())[:120]
+        raise UsageError(f"--device {device}: this torch cannot use it ({brief}); use --device cpu") from err
 
 
 def setting_changes(saved: dict, now: dict, keys) -> list[str]:
@@ -1438,6 +1453,7 @@ def check_settings(args: Args) -> None:
     for flag, value in vars(args).items():  # inf and nan would pass every range check below
         if isinstance(value, float):
             require(math.isfinite(value), flag, value, "must be a finite number")
+    check_device(args.device)
     at_least_1 = "total_steps num_envs batch_size batch_length imag_horizon eval_every eval_episodes"
     at_least_1 += " log_every save_every smoothing"
     for flag in at_least_1.split():
@@ -1451,8 +1467,10 @@ def check_settings(args: Args) -> None:
     require(
         args.gw_batch_size >= 2, "gw_batch_size", args.gw_batch_size, "must be at least 2 (it pairs samples)"
     )
-    for flag in ("train_ratio", "wm_lr", "ac_lr", "gw_cycle"):
+    positive = "train_ratio wm_lr ac_lr gw_cycle gw_lr_start gw_lr_max gw_lr_end fusion_temperature"
+    for flag in (positive + " contrastive_temperature").split():
         require(getattr(args, flag) > 0, flag, getattr(args, flag), "must be positive")
+    require(args.gw_weight_decay >= 0, "gw_weight_decay", args.gw_weight_decay, "must not be negative")
     require(0 < args.gamma <= 1, "gamma", args.gamma, "must be in (0, 1]")
     for flag in ("lam", "slow_critic_decay", "return_norm_decay"):
         require(0 <= getattr(args, flag) <= 1, flag, getattr(args, flag), "must be in [0, 1]")

@@ -195,6 +195,11 @@ def test_a_damaged_checkpoint_names_its_path_and_the_command_that_remakes_it(gw_
         "gw_dreamer.py", tmp_path, "--env", "simple_shapes", "--checkpoint-dir", str(tmp_path / "ck")
     )
     assert_refused(out, f"cannot read {gw}", "python pretrain_vae_gw.py --env simple_shapes")
+    torch.save(torch.zeros(3), gw)  # a torch file, but no checkpoint of these scripts
+    out = run_cli(
+        "gw_dreamer.py", tmp_path, "--env", "simple_shapes", "--checkpoint-dir", str(tmp_path / "ck")
+    )
+    assert_refused(out, f"{gw} holds a Tensor of torch.save, not a checkpoint of these scripts")
 
 
 SIGINT_IN = textwrap.dedent(
@@ -288,6 +293,13 @@ BAD_FLAGS = [
     ("dreamer_baseline.py", ["--wm-lr", "inf"], "--wm-lr inf: must be a finite number"),
     ("ppo_variants.py", ["--learning-rate", "inf"], "--learning-rate inf: must be a finite number"),
     ("pretrain_vae_gw.py", ["--beta-v", "inf"], "--beta-v inf: must be a finite number"),
+    ("gw_dreamer_e2e.py", ["--fusion-temperature", "0"], "--fusion-temperature 0.0: must be positive"),
+    ("gw_dreamer_e2e.py", ["--contrastive-temperature", "-1"], "--contrastive-temperature -1.0: must be"),
+    ("gw_dreamer_e2e.py", ["--gw-weight-decay", "-1"], "--gw-weight-decay -1.0: must not be negative"),
+    *(
+        (s, ["--device", "cuda:99"], "--device cuda:99: this torch cannot use it")
+        for s in (*AGENT_SCRIPTS, "pretrain_vae_gw.py")
+    ),
     *(
         (script, ["--learning-starts", "50", "--total-steps", "50"], "--learning-starts 50: must be below")
         for script in ("gw_dreamer.py", "gw_dreamer_e2e.py", "dreamer_baseline.py")

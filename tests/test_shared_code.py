@@ -17,7 +17,7 @@ SHARED = {
     # Safe runs (docs/safe_runs.md)
     **dict.fromkeys(
         "UsageError require atomic_save read_checkpoint ensure_writable setting_changes StopRequest"
-        " cli".split(),
+        " check_device cli".split(),
         (*AGENTS, PRETRAIN),
     ),
     # pre-training claims its outputs per stage
