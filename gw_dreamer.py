@@ -1181,6 +1181,13 @@ def claim_outputs(paths: list[Path], resume: bool, overwrite: bool) -> None:
     A run that is still training holds a lock (``take_lock``), so no second process writes the same run."""
     take_lock(paths[0].with_name(f".{paths[0].name}.lock"))
     existing = [p for p in paths if p.exists()]
+    if existing and not paths[0].exists() and not overwrite:  # the run stopped before its first save
+        raise UsageError(
+            f"{' and '.join(map(str, existing))} exist, but no checkpoint {paths[0]}: that run stopped "
+            "before its first save and cannot be continued; add --overwrite (without --resume) to start again"
+        )
+    if resume and not paths[0].exists():
+        raise UsageError(f"--resume: there is no checkpoint {paths[0]} to continue; start the run without it")
     if resume or not existing:
         return
     if not overwrite:

@@ -93,6 +93,26 @@ def test_pretraining_never_replaces_a_checkpoint_made_otherwise(pretrained, tmp_
     assert torch.load(ck / "gw.pt", weights_only=False)["identity"]["gw_steps"] == 21
 
 
+def test_a_run_that_died_before_its_first_save_is_started_again_as_the_hint_says(pretrained, tmp_path):
+    """runs/<name> without a checkpoint (killed before its first save): the plain command and --resume
+    both say that nothing can be continued and to add --overwrite, which then trains; --resume with
+    nothing at all says to start without it, which then trains. Fails if the two hints point at each other."""
+    (tmp_path / "runs" / "gw_dreamer_gw_simple_shapes_s1").mkdir(parents=True)
+    for extra in ([], ["--resume"]):
+        out = agent_cli("gw_dreamer.py", pretrained, tmp_path, *extra)
+        assert_refused(
+            out, "but no checkpoint", "stopped before its first save", "add --overwrite (without --resume)"
+        )
+    assert agent_cli("gw_dreamer.py", pretrained, tmp_path, "--overwrite").returncode == 0
+    other = tmp_path / "other"
+    other.mkdir()
+    out = agent_cli("gw_dreamer.py", pretrained, other, "--resume")
+    assert_refused(
+        out, f"--resume: there is no checkpoint {other / 'agent.pt'} to continue; start the run without it"
+    )
+    assert agent_cli("gw_dreamer.py", pretrained, other).returncode == 0
+
+
 # 2. Pre-training partials of other settings ----------
 def test_pretraining_refuses_a_partial_stage_of_other_settings(pretrained, tmp_path):
     """Ctrl-C during the vae stage saves a partial (exit 130); other flags refuse to continue it, naming
