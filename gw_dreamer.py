@@ -412,7 +412,8 @@ def load_encoder(
 ) -> FrozenEncoder:
     """The frozen encoder from the checkpoints of pretrain_vae_gw.py, checked against ``env``."""
     vae = load_pretrained(vae_path, "vae", env, "collect vae gw", checkpoint_dir, task)  # the GW needs it too
-    gw = load_pretrained(gw_path, "gw", env, "gw", checkpoint_dir, task)
+    clip = " --loss-preset clip" if gw_path.name == "clip.pt" else ""  # CLIP-Dreamer's contrastive model
+    gw = load_pretrained(gw_path, "gw", env, "gw", checkpoint_dir, task, clip)
     check_gw_vae_pair(vae, gw, vae_path, gw_path, checkpoint_dir)
     try:
         return FrozenEncoder(env, vae, gw)

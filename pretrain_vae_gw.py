@@ -397,6 +397,16 @@ def cli(main, args_type) -> None:
         raise SystemExit(130) from None
 
 
+def own_command(args: Args, stages: str, extra: str = "") -> str:
+    """This script's command for ``stages`` with the user's folders, scale and loss preset (for hints)."""
+    cmd = f"python pretrain_vae_gw.py --env {args.env} --stages {stages}"
+    cmd += " --cpu-preset" if args.cpu_preset else ""
+    cmd += f" --loss-preset {args.loss_preset}" if args.loss_preset != "gw" else ""
+    cmd += f" --data-dir {args.data_dir}" if args.data_dir != "data" else ""
+    cmd += f" --checkpoint-dir {args.checkpoint_dir}" if args.checkpoint_dir != "checkpoints" else ""
+    return cmd + extra
+
+
 def load_checkpoint(path: Path, kind: str, env: str, make: str) -> dict:
     """Load a checkpoint and check that it is a ``kind`` checkpoint of ``env``; ``make`` is the command
     that produces it (named in the error)."""
@@ -511,7 +521,7 @@ def stage_is_done(path: Path, identity: dict, args: Args) -> bool:
     would no longer load once it changed."""
     if not path.is_file() or args.overwrite:
         return False
-    saved = read_checkpoint(path, f"python pretrain_vae_gw.py --env {args.env} --overwrite").get("identity")
+    saved = read_checkpoint(path, own_command(args, " ".join(args.stages), " --overwrite")).get("identity")
     if saved == identity:
         print(f"[{path.stem}] {path} was made with these settings: stage skipped")
         return True
@@ -676,9 +686,10 @@ def load_data(folder: Path, env: str) -> tuple[np.ndarray, np.ndarray]:
     """All shards of ``folder``, checked against the environment's shapes and dtypes."""
     paths = shard_paths(folder)
     if not paths:
+        data = "" if folder.parent == Path("data") else f" --data-dir {folder.parent}"
         raise UsageError(
             f"no data shards in {folder}; collect them with "
-            f"`python pretrain_vae_gw.py --env {env} --stages collect`"
+            f"`python pretrain_vae_gw.py --env {env} --stages collect{data}` (and the flags of your run)"
         )
     spec = ENV_SPECS[env]
     images, attrs = [], []
@@ -1350,9 +1361,11 @@ def make_vaes(env: str, width: int) -> tuple[VisualVAE, AttrVAE]:
     return vae_v, vae_attr
 
 
-def load_vaes(path: Path, env: str) -> tuple[VisualVAE, AttrVAE, dict]:
-    """Frozen VAEs from a ``vae`` checkpoint (eval mode, no gradients)."""
-    ckpt = load_checkpoint(path, "vae", env, f"python pretrain_vae_gw.py --env {env} --stages collect vae")
+def load_vaes(path: Path, env: str, make: str = "") -> tuple[VisualVAE, AttrVAE, dict]:
+    """Frozen VAEs from a ``vae`` checkpoint (eval mode, no gradients); ``make``: the command making it."""
+    ckpt = load_checkpoint(
+        path, "vae", env, make or f"python pretrain_vae_gw.py --env {env} --stages collect vae"
+    )
     vae_v, vae_attr = make_vaes(env, ckpt["config"]["vae_width"])
     vae_v.load_state_dict(ckpt["vae_v"])
     vae_attr.load_state_dict(ckpt["vae_attr"])
@@ -1618,7 +1631,8 @@ def encode_unimodal(vae_v, vae_attr, images, attrs_n, device, batch: int = 1024)
 
 
 def train_gw(args: Args, writer: SummaryWriter, stop: StopRequest) -> None:
-    vae_v, vae_attr, vae_ckpt = load_vaes(env_dir(args.checkpoint_dir, args) / "vae.pt", args.env)
+    vae_path = env_dir(args.checkpoint_dir, args) / "vae.pt"
+    vae_v, vae_attr, vae_ckpt = load_vaes(vae_path, args.env, own_command(args, "collect vae gw"))
     path = env_dir(args.checkpoint_dir, args) / f"{args.loss_preset}.pt"
     identity = stage_identity(args, "gw", vae_ckpt)
     if stage_is_done(path, identity, args):

@@ -292,6 +292,25 @@ def test_a_damaged_data_shard_or_manifest_is_one_line_naming_it(pretrained, tmp_
     assert_refused(out, f"cannot read {folder / 'manifest.json'} (JSONDecodeError)")
 
 
+def test_hints_keep_the_users_folders_stages_and_loss_preset(tmp_path):
+    """The commands that missing files name carry --data-dir, --checkpoint-dir and --loss-preset clip.
+    Fails if a hint is built without the user's flags (it would make the files somewhere else)."""
+    data, ck = tmp_path / "mydata", tmp_path / "myck"
+    base = ["--env", "simple_shapes", "--data-dir", str(data), "--checkpoint-dir", str(ck)]
+    out = run_cli("pretrain_vae_gw.py", tmp_path, *base, "--stages", "vae")
+    assert_refused(out, f"`python pretrain_vae_gw.py --env simple_shapes --stages collect --data-dir {data}`")
+    (ck / "simple_shapes").mkdir(parents=True, exist_ok=True)
+    out = run_cli("pretrain_vae_gw.py", tmp_path, *base, "--stages", "gw", "--loss-preset", "clip")
+    want = f"--stages collect vae gw --loss-preset clip --data-dir {data} --checkpoint-dir {ck}`"
+    assert_refused(out, f"no vae checkpoint at {ck / 'simple_shapes' / 'vae.pt'}", want)
+    clip = ["--gw-checkpoint", str(ck / "clip.pt"), "--vae-checkpoint", str(tmp_path / "vae.pt")]
+    torch.save({"kind": "vae", "env": "simple_shapes"}, tmp_path / "vae.pt")
+    out = run_cli("gw_dreamer.py", tmp_path, "--env", "simple_shapes", *clip)
+    assert_refused(
+        out, f"no gw checkpoint at {ck / 'clip.pt'}", "--stages gw --cpu-preset --loss-preset clip"
+    )
+
+
 # 6. Numbers that make no sense ----------
 BAD_FLAGS = [
     ("gw_dreamer.py", ["--total-steps", "-5"], "--total-steps -5: must be at least 1"),
