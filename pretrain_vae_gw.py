@@ -57,7 +57,7 @@ class Args:
     env: Literal["simple_shapes", "robodesk"] = "simple_shapes"
     """environment whose observations are encoded"""
     stages: tuple[Literal["collect", "vae", "gw"], ...] = ("collect", "vae", "gw")
-    """stages to run, in this order"""
+    """stages to run; they run in the pipeline's order (collect, vae, gw) whatever the order given"""
     task: str = "push_green"
     """RoboDesk task whose expert collects the expert data, unless --tasks is given (ignored for Simple
     Shapes): one of open_slide, open_drawer, push_green, stack, upright_block_off_table,
@@ -1861,9 +1861,8 @@ def main(args: Args) -> None:
     writer = None
     if rank == 0:
         run_name = f"{args.exp_name}_{args.env}_{args.loss_preset}_{args.seed}_{int(time.time())}"
-        writer = SummaryWriter(f"runs/{run_name}")
         table = "\n".join(f"|{k}|{v}|" for k, v in vars(args).items())
-        writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + table)
+        writer = LazyWriter(f"runs/{run_name}", "|param|value|\n|-|-|\n" + table)
     t0 = time.time()
     with StopRequest("pretrain") as stop:  # Ctrl-C: the stage saves what it has and the run exits 130
         if "collect" in args.stages:
@@ -1875,6 +1874,25 @@ def main(args: Args) -> None:
     if writer is not None:
         writer.close()
         print(f"done in {(time.time() - t0) / 60:.1f} min")
+
+
+class LazyWriter:
+    """TensorBoard's SummaryWriter, made at the first thing a stage logs: a call that trains nothing (a
+    refused one, or one whose stages are all up to date) leaves no runs/ folder behind."""
+
+    def __init__(self, logdir: str, hyperparameters: str):
+        self.logdir, self.hyperparameters, self.writer = logdir, hyperparameters, None
+
+    def __getattr__(self, name: str):
+        if self.writer is None:
+            self.writer = SummaryWriter(self.logdir)
+            self.writer.add_text("hyperparameters", self.hyperparameters)
+        return getattr(self.writer, name)
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
+
     if dist.is_initialized():
         dist.destroy_process_group()
 

@@ -89,6 +89,7 @@ def test_pretraining_never_replaces_a_checkpoint_made_otherwise(pretrained, tmp_
     out = run_cli("pretrain_vae_gw.py", tmp_path, *data, *paths, "--gw-steps", "21")
     assert_refused(out, str(ck / "gw.pt"), "made with --gw-steps 20", "--overwrite")
     assert (ck / "gw.pt").read_bytes() == gw
+    assert not list((tmp_path / "runs").iterdir())  # the skipped and the refused call logged nothing
     run_script("pretrain_vae_gw.py", tmp_path, *data, *paths, "--gw-steps", "21", "--overwrite")
     assert torch.load(ck / "gw.pt", weights_only=False)["identity"]["gw_steps"] == 21
 
