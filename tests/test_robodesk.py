@@ -87,6 +87,32 @@ def test_wrong_actions_and_states_raise(env):
         RoboDeskEnv(render_images=False).step(np.zeros(5))
 
 
+def test_attribute_space_has_the_joints_soft_bounds_and_refuses_states_outside_them():
+    """Joint positions are bounded by their ranges widened by the soft-limit margin, quaternions by
+    [-1, 1], free positions and velocities not at all; a random-action episode pressed against the limits
+    stays inside; set_state refuses a qpos outside. Fails if the attribute space is left at +-inf or
+    set_state skips the bounds."""
+    e = RoboDeskEnv(render_images=False, episode_length=400)
+    space = e.observation_space["attr"]
+    lo, hi = e.model.jnt_range[e.model.joint("panda0_joint4").id]
+    assert (space.low[3], space.high[3]) == (np.float32(lo - 0.25), np.float32(hi + 0.25))
+    assert space.low[22] == np.float32(-0.02) and space.high[22] == np.float32(0.62)  # the slide, 0-0.6 m
+    assert (space.low[32:36] == -1).all() and (
+        space.high[43:50][3:] == 1
+    ).all()  # ball, flat block quaternions
+    assert np.isinf(space.low[29:32]).all() and np.isinf(space.high[9:21]).all()  # positions, velocities
+    obs, _ = e.reset(seed=3)
+    rng = np.random.default_rng(3)
+    for _ in range(100):
+        obs = e.step(np.sign(rng.uniform(-1, 1, 5)).astype(np.float32))[0]  # bang-bang, into the limits
+        assert space.contains(obs["attr"])
+    qpos, qvel = e.data.qpos.copy(), e.data.qvel.copy()
+    e.set_state(qpos, qvel)  # inside: accepted
+    qpos[0] = 10.0
+    with pytest.raises(ValueError, match=r"qpos\[0\] = 10 is outside \[-3.1"):
+        e.set_state(qpos, qvel)
+
+
 def test_check_env_with_and_without_images():
     check_env(RoboDeskEnv(render_images=False, episode_length=40), skip_render_check=True)
     check_env(
