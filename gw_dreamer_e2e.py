@@ -1232,6 +1232,11 @@ def atomic_save(obj: dict, path: Path) -> None:
 
 def read_checkpoint(path: Path, remake: str) -> dict:
     """``torch.load``, or a message that names the file and the command that makes it again."""
+    if path.suffix == ".pt2":
+        raise UsageError(
+            f"{path} is a policy exported by dreamer_baseline.py (torch.export), not a checkpoint: give the "
+            f"agent checkpoint beside it, {path.with_name(path.name.removesuffix('.policy.pt2') + '.pt')}"
+        )
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as err:  # a truncated zip, a text file, a pickle of something else: many types
@@ -1259,7 +1264,7 @@ def ensure_writable(folder: Path) -> None:
         raise UsageError(f"cannot write to {folder}: {err.strerror or err}") from err
 
 
-def claim_outputs(paths: list[Path], resume: bool, overwrite: bool) -> None:
+def claim_outputs(paths: list[Path], resume: bool, overwrite: bool, kind: str) -> None:
     """A new run stops before it would overwrite an earlier run's checkpoint or mix its TensorBoard
     events with that run's; --overwrite removes them on purpose, --resume continues the run they hold.
     A run that is still training holds a lock (``take_lock``), so no second process writes the same run."""
@@ -1272,6 +1277,16 @@ def claim_outputs(paths: list[Path], resume: bool, overwrite: bool) -> None:
         )
     if resume and not paths[0].exists():
         raise UsageError(f"--resume: there is no checkpoint {paths[0]} to continue; start the run without it")
+    if paths[0].is_file() and not overwrite:  # the same --exp-name given to another script
+        try:
+            other = read_checkpoint(paths[0], "").get("kind")
+        except UsageError:  # a damaged file: --resume names it
+            other = kind
+        if other != kind:
+            raise UsageError(
+                f"{paths[0]} holds a {other!r} run, not a {kind!r} one (the same run name in another "
+                "script?): choose another --exp-name or --checkpoint"
+            )
     if resume or not existing:
         return
     if not overwrite:
@@ -1581,7 +1596,7 @@ def start_run(args: Args, vaes: FrozenVAEs, agent: Agent, paths: dict, agent_pat
     model = "gw" if args.loss_preset == "gw" else "clip"
     runs_dir = Path("runs") / run_name(args, model)
     # Nothing of an earlier run is overwritten by accident, and the output folders take files now.
-    claim_outputs([agent_path, runs_dir], args.resume, args.overwrite)
+    claim_outputs([agent_path, runs_dir], args.resume, args.overwrite, "gw_dreamer_e2e")
     ensure_writable(agent_path.parent)
     ensure_writable(runs_dir)
     opts = make_optimizers(agent, args)

@@ -310,6 +310,11 @@ def atomic_save(obj: dict, path: Path) -> None:
 
 def read_checkpoint(path: Path, remake: str) -> dict:
     """``torch.load``, or a message that names the file and the command that makes it again."""
+    if path.suffix == ".pt2":
+        raise UsageError(
+            f"{path} is a policy exported by dreamer_baseline.py (torch.export), not a checkpoint: give the "
+            f"agent checkpoint beside it, {path.with_name(path.name.removesuffix('.policy.pt2') + '.pt')}"
+        )
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as err:  # a truncated zip, a text file, a pickle of something else: many types

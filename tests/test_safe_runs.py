@@ -312,6 +312,23 @@ def test_hints_keep_the_users_folders_stages_and_loss_preset(tmp_path):
     )
 
 
+def test_another_scripts_run_under_the_same_name_and_an_exported_policy_are_named_as_such(gw_run, pretrained):
+    """A gw_dreamer.py checkpoint met by gw_dreamer_e2e.py (the same --exp-name / --checkpoint), with or
+    without --resume, is named as another script's run; a .policy.pt2 given as a checkpoint is named as
+    the exported policy, not as a damaged file. Fails if the kind is not read before "add --resume"."""
+    cwd, agent, saved = gw_run
+    for extra in ([], ["--resume"]):
+        out = agent_cli("gw_dreamer_e2e.py", pretrained, cwd, *extra, checkpoint=agent)
+        assert_refused(out, f"{agent} holds a 'gw_dreamer' run, not a 'gw_dreamer_e2e' one", "--exp-name")
+    assert agent.read_bytes() == saved
+    policy = cwd / "dreamer.policy.pt2"
+    policy.write_bytes(b"an exported program")
+    out = agent_cli("dreamer_baseline.py", pretrained, cwd, "--eval-only", checkpoint=policy)
+    assert_refused(
+        out, f"{policy} is a policy exported by dreamer_baseline.py", str(cwd / "dreamer.policy.pt")
+    )
+
+
 # 6. Numbers that make no sense ----------
 BAD_FLAGS = [
     ("gw_dreamer.py", ["--total-steps", "-5"], "--total-steps -5: must be at least 1"),
