@@ -1270,8 +1270,11 @@ def export_policy(agent: Agent, observer: Observer, args: Args, path: Path) -> N
     }
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.pt2")  # torch.export wants the .pt2 suffix
-    torch.export.save(program, tmp, extra_files={"meta.json": json.dumps(meta)})
-    os.replace(tmp, path)
+    try:
+        torch.export.save(program, tmp, extra_files={"meta.json": json.dumps(meta)})
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def observer_fingerprint(observer: Observer) -> float:
@@ -1588,7 +1591,14 @@ def save(run: Run) -> None:
         },
         run.agent_path,
     )
-    export_policy(run.agent, run.frozen, a, run.agent_path.with_suffix(".policy.pt2"))
+    policy = run.agent_path.with_suffix(".policy.pt2")
+    try:
+        export_policy(run.agent, run.frozen, a, policy)
+    except KeyboardInterrupt:  # Ctrl-C while exporting: the agent is saved, its policy not
+        raise KeyboardInterrupt(
+            f"while exporting {policy}; the agent is saved at {run.agent_path}, and the same command "
+            "with --resume exports it"
+        ) from None
 
 
 def log_episode(run: Run, ret: float, success: float) -> None:

@@ -382,6 +382,29 @@ def test_flags_out_of_range_stop_at_start_with_one_line(tmp_path):
     assert not (tmp_path / "ck").exists() and not (tmp_path / "runs").exists()
 
 
+def test_ctrl_c_during_the_policy_export_says_so_and_resume_exports_it(pretrained, tmp_path):
+    """Dreamer's final save, then Ctrl-C while its policy is exported: one line saying the agent is saved
+    and how to export it; the hint, run as printed, writes the policy. Fails if the interruption is silent."""
+    script = "dreamer_baseline.py"
+    ck = ["--checkpoint-dir", str(pretrained[0] / "ck"), "--checkpoint", str(tmp_path / "agent.pt")]
+    argv = [script, "--env", "simple_shapes", *ck, *AGENT_TINY[script]]
+    code = SIGINT_IN.format(root=str(ROOT), module=script[:-3], func="export_policy", argv=argv)
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=300
+    )
+    policy = tmp_path / "agent.policy.pt2"
+    hint = (
+        f"interrupted while exporting {policy}; the agent is saved at {tmp_path / 'agent.pt'}, and the same"
+    )
+    assert out.returncode == 130 and hint in out.stdout and "Traceback" not in out.stderr, (
+        out.stdout + out.stderr
+    )
+    assert (tmp_path / "agent.pt").is_file() and not policy.exists()
+    assert not [p for p in tmp_path.iterdir() if ".tmp" in p.name]
+    again = run_cli(script, tmp_path, *argv[1:], "--resume")
+    assert again.returncode == 0 and policy.is_file(), again.stdout + again.stderr
+
+
 # Saves killed half-way ----------
 KILLED_SAVE = textwrap.dedent(
     """
