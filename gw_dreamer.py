@@ -1270,6 +1270,18 @@ def check_device(device: str) -> None:
         raise UsageError(f"--device {device}: this torch cannot use it ({brief}); use --device cpu") from err
 
 
+def non_finite(tree, where: str = "") -> str:
+    """The key path of the first floating-point tensor or array in ``tree`` that holds a NaN or an
+    infinity ('' if none): a checkpoint written from such a state is no good to continue."""
+    if isinstance(tree, dict):
+        return next((bad for k, v in tree.items() if (bad := non_finite(v, f"{where}/{k}".strip("/")))), "")
+    if isinstance(tree, torch.Tensor) and tree.is_floating_point() and not torch.isfinite(tree).all():
+        return where
+    if isinstance(tree, np.ndarray) and tree.dtype.kind == "f" and not np.isfinite(tree).all():
+        return where
+    return ""
+
+
 def setting_changes(saved: dict, now: dict, keys) -> list[str]:
     """``--flag value`` of each setting in ``keys`` whose saved value differs from this command's."""
     out = []
@@ -1362,6 +1374,12 @@ def load_agent_checkpoint(path: Path, args: Args, fingerprint: float) -> dict:
     ckpt = read_checkpoint(path, train)
     if ckpt.get("kind") != "gw_dreamer":
         raise UsageError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected a gw_dreamer agent")
+    bad = non_finite({k: ckpt[k] for k in ("agent", "replay") if k in ckpt})
+    if bad:
+        raise UsageError(
+            f"{path} holds non-finite values ({bad}): it is no state to continue or evaluate; go back to a "
+            "copy saved earlier or train again"
+        )
     if ckpt.get("env") != args.env:
         raise UsageError(f"{path} is an agent for env {ckpt.get('env')!r}, but --env is {args.env!r}")
     if abs(ckpt["gw_fingerprint"] - fingerprint) > 1e-6 * max(1.0, abs(fingerprint)):

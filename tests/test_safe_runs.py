@@ -165,6 +165,20 @@ def test_a_checkpoint_without_a_newer_flag_resumes_only_at_its_default(gw_run, p
     assert out.returncode == 0 and "resuming" in out.stdout, out.stdout + out.stderr
 
 
+def test_a_checkpoint_holding_a_nan_is_refused_naming_where(gw_run, pretrained):
+    """A NaN in the saved replay (or weights) stops --resume and --eval-only with one line naming the
+    entry. Fails if a checkpoint is read back without the finite-value check."""
+    cwd, agent, _ = gw_run
+    bad = cwd / "nan"
+    bad.mkdir()
+    ck = torch.load(agent, weights_only=False)
+    ck["replay"]["r"][0, 1] = float("nan")
+    torch.save(ck, bad / "agent.pt")
+    for extra in (["--resume"], ["--eval-only"]):
+        out = agent_cli("gw_dreamer.py", pretrained, bad, *extra)
+        assert_refused(out, f"{bad / 'agent.pt'} holds non-finite values (replay/r)", "no state to continue")
+
+
 # 4. Data and agents of another task ----------
 def test_collect_refuses_data_of_other_settings(pretrained, pretrained_robodesk, tmp_path):
     folder = pretrained[0] / "data" / "simple_shapes"

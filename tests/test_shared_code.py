@@ -22,7 +22,7 @@ SHARED = {
     ),
     # pre-training claims its outputs per stage
     **dict.fromkeys("claim_outputs take_lock check_unrecorded".split(), AGENTS),
-    "last_good": AGENTS,
+    **dict.fromkeys("last_good non_finite".split(), AGENTS),
     # Pre-trained checkpoints: the bundled Simple Shapes VAE + GW and the missing-checkpoint messages
     **dict.fromkeys(
         "BUNDLED ROBODESK_TASKS ROBODESK_PIPELINE pretrained_paths pretrain_command load_pretrained".split(),
