@@ -1301,7 +1301,7 @@ def claim_outputs(paths: list[Path], resume: bool, overwrite: bool, kind: str) -
 def take_lock(lock: Path) -> None:
     """Hold ``lock`` (a file with this process's id) until the process exits. A lock whose process is
     alive stops this run; one left by a process that died without cleaning up (kill -9) is taken over."""
-    lock.parent.mkdir(parents=True, exist_ok=True)
+    ensure_writable(lock.parent)
     while True:
         try:
             fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY)

@@ -216,6 +216,10 @@ def test_unwritable_outputs_stop_the_run_before_it_trains(pretrained, tmp_path):
     data = ["--data-dir", str(pretrained[0] / "data"), *TINY_PRETRAIN, "--stages", "vae"]
     out = run_cli("pretrain_vae_gw.py", tmp_path, *data, "--checkpoint-dir", str(blocker))
     assert_refused(out, f"cannot write to {blocker}")
+    (tmp_path / "runs").write_text("not a folder")  # TensorBoard's folder cannot be made here
+    out = run_cli("pretrain_vae_gw.py", tmp_path, *data, "--checkpoint-dir", str(tmp_path / "ck"))
+    assert_refused(out, "cannot write to runs")
+    assert not (tmp_path / "ck" / "simple_shapes" / "vae.pt").exists()  # nothing trained
 
 
 def test_a_damaged_checkpoint_names_its_path_and_the_command_that_remakes_it(gw_run, pretrained, tmp_path):
