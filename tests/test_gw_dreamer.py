@@ -167,14 +167,30 @@ def test_missing_or_mismatched_checkpoints_are_explained(pretrained, pretrained_
         G.main(G.Args(env="robodesk", task="fly", checkpoint_dir=str(pretrained_robodesk[0] / "ck")))
 
 
-def test_agent_checkpoint_reloads_to_identical_outputs(ss_run):
+def test_agent_checkpoint_reloads_to_identical_outputs(ss_run, tmp_path):
+    """The saved agent, loaded into two agents initialised differently, gives one set of outputs, which
+    an agent saved and loaded again keeps; fails if some weight or buffer is not in the state dict."""
     ck = torch.load(ss_run[2], weights_only=False)
-    a, b = G.Agent("simple_shapes", 10, "twohot"), G.Agent("simple_shapes", 10, "twohot")
-    a.load_state_dict(ck["agent"])
-    b.load_state_dict(ck["agent"])
     h, z, act = torch.randn(5, 64), torch.rand(5, 10), F.one_hot(torch.arange(5), 7).float()
-    assert torch.equal(a.actor.dist(h).probs, b.actor.dist(h).probs)
-    assert torch.equal(a.wm.heads(a.wm.step(h, z, act))[0], b.wm.heads(b.wm.step(h, z, act))[0])
+
+    def outputs(agent):
+        z_next, reward, done = agent.wm.heads(agent.wm.step(h, z, act))
+        return [agent.actor.dist(h).probs, z_next, reward, done, agent.critic(h), agent.slow_critic(h)]
+
+    agents = []
+    for seed in (0, 1):
+        torch.manual_seed(seed)
+        agents.append(G.Agent("simple_shapes", 10, "twohot"))
+    assert not torch.equal(outputs(agents[0])[0], outputs(agents[1])[0])  # other initial weights
+    for agent in agents:
+        agent.load_state_dict(ck["agent"])
+    G.atomic_save({"agent": agents[0].state_dict()}, tmp_path / "again.pt")
+    torch.manual_seed(2)
+    again = G.Agent("simple_shapes", 10, "twohot")
+    again.load_state_dict(torch.load(tmp_path / "again.pt", weights_only=False)["agent"])
+    for x, y, w in zip(outputs(agents[0]), outputs(agents[1]), outputs(again), strict=True):
+        assert torch.equal(x, y) and torch.equal(x, w)
+    assert torch.equal(agents[1].return_scale.ema, again.return_scale.ema)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -1,5 +1,6 @@
 """pretrain_vae_gw.py: stages through the CLI, GW losses by hand, learning, reloading, errors."""
 
+import shutil
 from types import SimpleNamespace
 
 import numpy as np
@@ -17,7 +18,7 @@ def trained(pretrained):
     return pretrained
 
 
-def test_all_stages_run_through_the_cli(trained):
+def test_all_stages_run_through_the_cli(trained, tmp_path):
     tmp, log, log_clip = trained
     assert len(P.shard_paths(tmp / "data" / "simple_shapes")) == 2
     for name, kind in (("vae", "vae"), ("gw", "gw"), ("clip", "gw")):
@@ -32,10 +33,12 @@ def test_all_stages_run_through_the_cli(trained):
     assert P.label_counts(tmp / "data" / "simple_shapes") == {"random/": 600}
     assert "fusion_to_position_error_px_outside" not in log  # no sample past the dataset's range
     assert list((tmp / "runs").iterdir())  # TensorBoard logs under runs/
-    # Collecting again appends nothing once enough samples exist; asking for more appends a shard.
-    assert "already holds 600" in run_pretrain(tmp, "--env", "simple_shapes", "--stages", "collect")
-    run_pretrain(tmp, "--env", "simple_shapes", "--stages", "collect", "--n-samples", "700")
-    images, attrs = P.load_data(tmp / "data" / "simple_shapes", "simple_shapes")
+    # Collecting again appends nothing once enough samples exist; asking for more appends a shard (on a
+    # copy: the session's data must stay what its checkpoints were made from).
+    shutil.copytree(tmp / "data", tmp_path / "data")
+    assert "already holds 600" in run_pretrain(tmp_path, "--env", "simple_shapes", "--stages", "collect")
+    run_pretrain(tmp_path, "--env", "simple_shapes", "--stages", "collect", "--n-samples", "700")
+    images, attrs = P.load_data(tmp_path / "data" / "simple_shapes", "simple_shapes")
     assert images.shape == (700, 32, 32, 3) and attrs.shape == (700, 11)
 
 
