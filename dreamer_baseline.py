@@ -1129,7 +1129,7 @@ def take_lock(lock: Path) -> None:
     ensure_writable(lock.parent)
     while True:
         try:
-            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
             break
         except FileExistsError:
             text = lock.read_text().strip() if lock.is_file() else ""
