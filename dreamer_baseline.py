@@ -199,6 +199,8 @@ TABLE = {
     "simple_shapes": dict(total_steps=400_000, wm_lr=1e-3, size="2m"),
     "robodesk": dict(total_steps=1_000_000, wm_lr=3e-4, size="12m"),
 }
+
+
 # Appendix table "Architecture details used in Dreamer baseline": GRU recurrent units (deter), dense hidden
 # units (units), RSSM hidden dimension (hidden) and the total size. The table does not give the CNN depth,
 # the MLP depth or the latent classes; they are chosen so that the printed total matches the table's
@@ -220,102 +222,6 @@ ENV_SPECS = {  # must agree with envs/ and pretrain_vae_gw.py
     "simple_shapes": {"image": 32, "attr": 11, "latent": 10, "actions": 7},
     "robodesk": {"image": 64, "attr": 76, "latent": 40, "actions": 5},
 }
-
-
-# --------------------------------------------------------------------------------------------------
-# Frozen VAEs of pretrain_vae_gw.py (--obs vae): same layers, so the same weights load
-# --------------------------------------------------------------------------------------------------
-def conv_block(cin: int, cout: int, transpose: bool = False, stride: int = 2) -> nn.Sequential:
-    conv = (nn.ConvTranspose2d if transpose else nn.Conv2d)(
-        cin, cout, 4 if stride == 2 else 3, stride, 1, bias=False
-    )
-    return nn.Sequential(conv, nn.BatchNorm2d(cout), nn.ReLU())
-
-
-class VisualVAE(nn.Module):
-    """Appendix Tables VAE_v (the encoder's mean u_v is the observation of VAE-Dreamer)."""
-
-    def __init__(self, image: int, latent: int, width: int = 1024):
-        super().__init__()
-        n_down = int(np.log2(image)) - 1
-        chans = [width // 2 ** (n_down - 1 - i) for i in range(n_down)]
-        layers, cin = [], 3
-        for c in chans:
-            layers.append(conv_block(cin, c))
-            cin = c
-        self.encoder = nn.Sequential(*layers, nn.Flatten())
-        self.q = nn.Linear(width * 4, 2 * latent)
-        n_up = int(np.log2(image // 8))
-        up = [width // 2 ** (i + 1) for i in range(n_up)] + [width // 2**n_up]
-        self.fc = nn.Linear(latent, 8 * 8 * width)
-        dec, cin = [], width
-        for i, c in enumerate(up):
-            dec.append(conv_block(cin, c, transpose=True, stride=2 if i < n_up else 1))
-            cin = c
-        self.decoder = nn.Sequential(*dec, nn.Conv2d(cin, 3, 3, 1, 1), nn.Sigmoid())
-
-    def encode_mean(self, x: torch.Tensor) -> torch.Tensor:
-        return self.q(self.encoder(x)).chunk(2, dim=-1)[0]
-
-
-class AttrVAE(nn.Module):
-    """Appendix Tables VAE_attr (only the encoder's mean u_attr is used here)."""
-
-    def __init__(self, attr: int, latent: int, hidden: int, depth: int):
-        super().__init__()
-        enc, cin = [], attr
-        for _ in range(depth):
-            enc += [nn.Linear(cin, hidden), nn.ReLU()]
-            cin = hidden
-        self.encoder = nn.Sequential(
-            *enc, nn.Linear(hidden, latent), nn.ReLU(), nn.Linear(latent, 2 * latent)
-        )
-        dec, cin = [], latent
-        for _ in range(depth):
-            dec += [nn.Linear(cin, hidden), nn.ReLU()]
-            cin = hidden
-        self.decoder = nn.Sequential(*dec, nn.Linear(hidden, attr))
-
-    def encode_mean(self, a: torch.Tensor) -> torch.Tensor:
-        return self.encoder(a).chunk(2, dim=-1)[0]
-
-
-class Observer(nn.Module):
-    """Environment observation -> the agent's observation dict, with a modality optionally zeroed.
-
-    raw: {"image": uint8 (n, H, W, 3), "attr": (n, A)}; vae: {"x": [u_v, u_attr]} from the frozen VAEs.
-    It is part of the exported policy, so a VAE-Dreamer expert also reads raw observations."""
-
-    def __init__(self, env: str, kind: str, vae: dict | None):
-        super().__init__()
-        self.kind = kind
-        s = ENV_SPECS[env]
-        if kind == "vae":
-            self.vae_v = VisualVAE(s["image"], s["latent"], vae["config"]["vae_width"])
-            depth, hidden = (2, 64) if env == "simple_shapes" else (4, 512)
-            self.vae_attr = AttrVAE(s["attr"], s["latent"], hidden, depth)
-            try:
-                self.vae_v.load_state_dict(vae["vae_v"])
-                self.vae_attr.load_state_dict(vae["vae_attr"])
-            except RuntimeError as err:
-                raise UsageError(f"the VAE checkpoint does not fit the {env} networks: {err}") from err
-            self.register_buffer("attr_mean", torch.as_tensor(vae["attr_mean"], dtype=torch.float32))
-            self.register_buffer("attr_std", torch.as_tensor(vae["attr_std"], dtype=torch.float32))
-        self.eval().requires_grad_(False)
-
-    def spaces(self, env: str) -> dict[str, tuple[int, ...]]:
-        s = ENV_SPECS[env]
-        if self.kind == "raw":
-            return {"image": (s["image"], s["image"], 3), "attr": (s["attr"],)}
-        return {"x": (2 * s["latent"],)}
-
-    @torch.no_grad()
-    def forward(self, image: torch.Tensor, attr: torch.Tensor, drop: str = "none") -> dict[str, torch.Tensor]:
-        if self.kind == "raw":
-            return {"image": image * (drop != "vision"), "attr": attr * (drop != "attr")}
-        u_v = self.vae_v.encode_mean(image.permute(0, 3, 1, 2).float() / 255.0)
-        u_attr = self.vae_attr.encode_mean((attr - self.attr_mean) / self.attr_std)
-        return {"x": torch.cat([u_v * (drop != "vision"), u_attr * (drop != "attr")], -1)}
 
 
 # --------------------------------------------------------------------------------------------------
@@ -814,6 +720,196 @@ def actor_critic_loss(
     return loss_actor, loss_critic, stats
 
 
+def count_flops(fn):
+    """``fn()`` and the forward + backward FLOPs it took (torch.utils.flop_counter)."""
+    with FlopCounterMode(display=False) as counter:
+        out = fn()
+    return out, counter.get_total_flops()
+
+
+def updates_due(env_steps: int, args: Args) -> int:
+    """Training updates owed after ``env_steps`` environment steps (the paper's unit: frames on
+    RoboDesk). The table's train ratio 32 is DreamerV3's (replayed steps per agent step): a batch of
+    16 x 65 = 1,040 replayed steps per update gives one update per 32.5 agent steps."""
+    agent_steps = max(env_steps - args.learning_starts, 0) / ACTION_REPEAT[args.env]
+    return int(agent_steps * args.train_ratio / (args.batch_size * args.batch_length))
+
+
+def dream_loss(agent: Agent, deter0: torch.Tensor, stoch0: torch.Tensor, start_w, dynamics: bool, args: Args):
+    """The actor-critic's part of an update: dreams from the replayed posterior states, then their loss."""
+    dream = imagine(agent, deter0, stoch0, args.imag_horizon, grad=dynamics)
+    return actor_critic_loss(
+        agent,
+        dream,
+        start_w,
+        dynamics=dynamics,
+        gamma=args.gamma,
+        lam=args.lam,
+        entropy_coef=args.entropy_coef,
+    )
+
+
+EAGER = {"wm": world_model_loss, "ac": dream_loss}  # the two loss computations of an update
+
+
+def compiled_losses(device, backend: str = "inductor") -> dict:
+    """--compile: both loss computations through torch.compile, with CUDA graphs on a GPU. The optimizer
+    steps stay eager; nothing in the compiled parts reads a value back to the host. (``backend``: the
+    tests also use "aot_eager", the same graphs without generated kernels.)"""
+    mode = "reduce-overhead" if str(device).startswith("cuda") else None
+    # The actor's and the critic's losses come out of one compiled graph whose backward runs once per
+    # loss (each reaches only its own network), so that graph keeps its buffers between the two calls.
+    torch._functorch.config.donated_buffer = False
+    return {k: torch.compile(fn, mode=mode, backend=backend) for k, fn in EAGER.items()}
+
+
+def train_update(
+    agent: Agent, opts: dict, replay: Replay, args: Args, env_step: int = 0, losses: dict = EAGER
+) -> dict:
+    """One training step: the world model on replayed sequences, then the actor-critic on rollouts
+    dreamt from every replayed posterior state. Returns detached tensors, read once per log interval.
+    Eager losses are checked at once (the bad update is not applied); compiled ones at the next log line
+    or save (no host sync in the update)."""
+    dev, check = agent.twohot.bins.device, losses is EAGER
+    batch = {
+        k: torch.as_tensor(v, device=dev)
+        for k, v in replay.sample(args.batch_size, args.batch_length).items()
+    }
+    loss_wm, terms, (deter, stoch) = losses["wm"](agent, batch, args)
+    if check and not torch.isfinite(loss_wm):
+        raise FloatingPointError(f"non-finite world-model loss at env step {env_step:,}")
+    opts["wm"].zero_grad(set_to_none=True)
+    loss_wm.backward()
+    nn.utils.clip_grad_norm_(agent.world_model_parameters(), 1000.0)
+    opts["wm"].step()
+
+    dynamics = args.actor_grad == "dynamics" or (args.actor_grad == "auto" and not agent.discrete)
+    deter0, stoch0 = deter.detach().flatten(0, 1), stoch.detach().flatten(0, 1)
+    start_w = (1 - batch["terminal"]).flatten()  # no dream from an episode's final observation
+    loss_actor, loss_critic, stats = losses["ac"](agent, deter0, stoch0, start_w, dynamics, args)
+    if check and not (torch.isfinite(loss_actor) and torch.isfinite(loss_critic)):
+        raise FloatingPointError(f"non-finite actor-critic loss at env step {env_step:,}")
+    opts["actor"].zero_grad(set_to_none=True)
+    opts["critic"].zero_grad(set_to_none=True)
+    # Each loss reaches only its own network (the world model is trained by L_WM alone); the first call
+    # keeps the graph's buffers for the second (one graph when compiled).
+    loss_actor.backward(inputs=list(agent.actor.parameters()), retain_graph=True)
+    loss_critic.backward(inputs=list(agent.critic.parameters()))
+    nn.utils.clip_grad_norm_(agent.actor.parameters(), 100.0)
+    nn.utils.clip_grad_norm_(agent.critic.parameters(), 100.0)
+    opts["actor"].step()
+    opts["critic"].step()
+    with torch.no_grad():  # slow critic: EMA of the critic
+        for p_slow, p in zip(agent.slow_critic.parameters(), agent.critic.parameters(), strict=True):
+            p_slow.lerp_(p, 1 - args.slow_critic_decay)
+    out = {"loss_wm": loss_wm, **terms, "loss_actor": loss_actor, "loss_critic": loss_critic, **stats}
+    return {k: v.detach().clone() for k, v in out.items()}  # a copy: CUDA graphs reuse their outputs
+
+
+def make_optimizers(agent: Agent, args: Args) -> dict:
+    """Adam per part with the table's rates (eps as DreamerV3)."""
+    return {
+        "wm": torch.optim.Adam(agent.world_model_parameters(), lr=args.wm_lr, eps=1e-8),
+        "actor": torch.optim.Adam(agent.actor.parameters(), lr=args.ac_lr, eps=1e-5),
+        "critic": torch.optim.Adam(agent.critic.parameters(), lr=args.ac_lr, eps=1e-5),
+    }
+
+
+# --------------------------------------------------------------------------------------------------
+# DreamerV3's training loop
+# --------------------------------------------------------------------------------------------------
+def main(args: Args) -> dict:
+    args = args.resolve()
+    check_settings(args)
+    if args.torch_threads:
+        torch.set_num_threads(args.torch_threads)
+    dev = torch.device(args.device)
+    observer, paths = load_frozen(args, dev)
+    random.seed(args.seed)
+    np.random.seed(args.seed)
+    torch.manual_seed(args.seed)
+    agent = Agent(args.env, observer.spaces(args.env), args).to(dev)
+    default = Path(args.checkpoint_dir) / args.env / "agents" / f"{run_name(args, args.obs)}.pt"
+    agent_path = Path(args.checkpoint) if args.checkpoint else default
+    if args.eval_only:
+        return evaluate_checkpoint(agent, observer, args, agent_path)
+    run = start_run(args, observer, agent, paths, agent_path)
+    state, replay, ne, n_actions = run.state, run.replay, args.num_envs, agent.n_actions
+    losses = compiled_losses(dev) if args.compile else EAGER
+
+    envs_ = make_envs(args, ne)
+    obs, _ = envs_.reset(seed=args.seed + state.env_steps)
+    idx = np.arange(ne)
+    deter, stoch = agent.rssm.initial(ne, dev)
+    prev_a = torch.zeros(ne, n_actions, device=dev)
+    reward, terminal, first = np.zeros(ne), np.zeros(ne), np.ones(ne)
+    ep_ret, ep_succ = np.zeros(ne), np.zeros(ne)
+    rng = np.random.default_rng(args.seed + state.env_steps)
+    logs = {}
+    stop = StopRequest(TAG)
+    while state.env_steps < args.total_steps:
+        if args.stop_at_criterion and state.criterion_step is not None:
+            break
+        # Store the entry (o_t, a_{t-1}, r_t, terminal_t, first_t), then act on the filtered state.
+        o = observer(*as_tensors(obs, dev))
+        entry = {k: v.cpu().numpy() for k, v in o.items()}
+        replay.add(
+            idx,
+            entry | {"action": prev_a.cpu().numpy(), "reward": reward, "terminal": terminal, "first": first},
+        )
+        with torch.no_grad():
+            embed = agent.encoder(o)
+            first_t = torch.as_tensor(first, device=dev, dtype=torch.float32)
+            deter, stoch, _, _ = agent.rssm.obs_step(deter, stoch, prev_a, embed, first_t)
+            if state.env_steps < args.learning_starts:
+                a = random_actions(rng, ne, n_actions, agent.discrete, dev)
+            else:
+                a = agent.actor.act(feat_of(deter, stoch))
+        obs, r, term, trunc, info = envs_.step(action_for_env(a, agent.discrete))
+        done = term | trunc
+        ep_ret += r
+        ep_succ += step_success(info, ne)
+        state.env_steps += ne * ACTION_REPEAT[args.env]  # the paper's unit: simulator frames on RoboDesk
+        prev_a, reward, terminal, first = a, r.astype(np.float64), term.astype(np.float64), np.zeros(ne)
+        if done.any():
+            # The final observation is its own entry; the reset observation starts the next episode.
+            ends = np.flatnonzero(done)
+            o_final = {
+                k: v.cpu().numpy()
+                for k, v in observer(*as_tensors(final_observations(info, ends), dev)).items()
+            }
+            last = {"action": a[ends].cpu().numpy(), "reward": r[ends], "terminal": term[ends].astype(float)}
+            replay.add(ends, o_final | last | {"first": np.zeros(len(ends))})
+            for i in ends:
+                log_episode(run, float(ep_ret[i]), float(ep_succ[i]))
+            ep_ret[ends], ep_succ[ends] = 0.0, 0.0
+            reward[ends], terminal[ends], first[ends] = 0.0, 0.0, 1.0
+            prev_a[torch.as_tensor(ends, device=dev)] = 0.0  # a new episode has no previous action
+
+        # Train: the updates owed by the train ratio, once the buffer holds a full sequence.
+        while state.updates < updates_due(state.env_steps, args) and replay.ready(args.batch_length):
+            try:
+                if state.flops_per_update == 0:  # same shapes every update: count the first one
+                    logs, state.flops_per_update = count_flops(
+                        lambda: train_update(agent, run.opts, replay, args, state.env_steps)
+                    )
+                else:
+                    logs = train_update(agent, run.opts, replay, args, state.env_steps, losses)
+            except FloatingPointError as err:
+                raise FloatingPointError(f"{err}; {last_good(run.agent_path)}") from err
+            state.updates += 1
+            state.flops += state.flops_per_update
+
+        bookkeeping(run, logs)
+        if stop.requested:
+            envs_.close()
+            stop.restore()
+            interrupted(run)
+    stop.restore()
+    envs_.close()
+    return finish(run)
+
+
 # --------------------------------------------------------------------------------------------------
 # Environments and evaluation
 # --------------------------------------------------------------------------------------------------
@@ -945,6 +1041,480 @@ def dream_filmstrip(agent: Agent, observer: Observer, args: Args, steps: int, se
     return np.concatenate([np.concatenate(real, 1), np.concatenate(imgs, 1)], 0)
 
 
+def random_actions(rng: np.random.Generator, n: int, action_dim: int, discrete: bool, dev) -> torch.Tensor:
+    """The uniformly random policy that fills the replay buffer before learning starts."""
+    if discrete:
+        a = F.one_hot(torch.as_tensor(rng.integers(0, action_dim, n)), action_dim)
+    else:
+        a = torch.as_tensor(rng.uniform(-1, 1, (n, action_dim)))
+    return a.float().to(dev)
+
+
+# --------------------------------------------------------------------------------------------------
+# Frozen VAEs of pretrain_vae_gw.py (--obs vae): same layers, so the same weights load
+# --------------------------------------------------------------------------------------------------
+def conv_block(cin: int, cout: int, transpose: bool = False, stride: int = 2) -> nn.Sequential:
+    conv = (nn.ConvTranspose2d if transpose else nn.Conv2d)(
+        cin, cout, 4 if stride == 2 else 3, stride, 1, bias=False
+    )
+    return nn.Sequential(conv, nn.BatchNorm2d(cout), nn.ReLU())
+
+
+class VisualVAE(nn.Module):
+    """Appendix Tables VAE_v (the encoder's mean u_v is the observation of VAE-Dreamer)."""
+
+    def __init__(self, image: int, latent: int, width: int = 1024):
+        super().__init__()
+        n_down = int(np.log2(image)) - 1
+        chans = [width // 2 ** (n_down - 1 - i) for i in range(n_down)]
+        layers, cin = [], 3
+        for c in chans:
+            layers.append(conv_block(cin, c))
+            cin = c
+        self.encoder = nn.Sequential(*layers, nn.Flatten())
+        self.q = nn.Linear(width * 4, 2 * latent)
+        n_up = int(np.log2(image // 8))
+        up = [width // 2 ** (i + 1) for i in range(n_up)] + [width // 2**n_up]
+        self.fc = nn.Linear(latent, 8 * 8 * width)
+        dec, cin = [], width
+        for i, c in enumerate(up):
+            dec.append(conv_block(cin, c, transpose=True, stride=2 if i < n_up else 1))
+            cin = c
+        self.decoder = nn.Sequential(*dec, nn.Conv2d(cin, 3, 3, 1, 1), nn.Sigmoid())
+
+    def encode_mean(self, x: torch.Tensor) -> torch.Tensor:
+        return self.q(self.encoder(x)).chunk(2, dim=-1)[0]
+
+
+class AttrVAE(nn.Module):
+    """Appendix Tables VAE_attr (only the encoder's mean u_attr is used here)."""
+
+    def __init__(self, attr: int, latent: int, hidden: int, depth: int):
+        super().__init__()
+        enc, cin = [], attr
+        for _ in range(depth):
+            enc += [nn.Linear(cin, hidden), nn.ReLU()]
+            cin = hidden
+        self.encoder = nn.Sequential(
+            *enc, nn.Linear(hidden, latent), nn.ReLU(), nn.Linear(latent, 2 * latent)
+        )
+        dec, cin = [], latent
+        for _ in range(depth):
+            dec += [nn.Linear(cin, hidden), nn.ReLU()]
+            cin = hidden
+        self.decoder = nn.Sequential(*dec, nn.Linear(hidden, attr))
+
+    def encode_mean(self, a: torch.Tensor) -> torch.Tensor:
+        return self.encoder(a).chunk(2, dim=-1)[0]
+
+
+class Observer(nn.Module):
+    """Environment observation -> the agent's observation dict, with a modality optionally zeroed.
+
+    raw: {"image": uint8 (n, H, W, 3), "attr": (n, A)}; vae: {"x": [u_v, u_attr]} from the frozen VAEs.
+    It is part of the exported policy, so a VAE-Dreamer expert also reads raw observations."""
+
+    def __init__(self, env: str, kind: str, vae: dict | None):
+        super().__init__()
+        self.kind = kind
+        s = ENV_SPECS[env]
+        if kind == "vae":
+            self.vae_v = VisualVAE(s["image"], s["latent"], vae["config"]["vae_width"])
+            depth, hidden = (2, 64) if env == "simple_shapes" else (4, 512)
+            self.vae_attr = AttrVAE(s["attr"], s["latent"], hidden, depth)
+            try:
+                self.vae_v.load_state_dict(vae["vae_v"])
+                self.vae_attr.load_state_dict(vae["vae_attr"])
+            except RuntimeError as err:
+                raise UsageError(f"the VAE checkpoint does not fit the {env} networks: {err}") from err
+            self.register_buffer("attr_mean", torch.as_tensor(vae["attr_mean"], dtype=torch.float32))
+            self.register_buffer("attr_std", torch.as_tensor(vae["attr_std"], dtype=torch.float32))
+        self.eval().requires_grad_(False)
+
+    def spaces(self, env: str) -> dict[str, tuple[int, ...]]:
+        s = ENV_SPECS[env]
+        if self.kind == "raw":
+            return {"image": (s["image"], s["image"], 3), "attr": (s["attr"],)}
+        return {"x": (2 * s["latent"],)}
+
+    @torch.no_grad()
+    def forward(self, image: torch.Tensor, attr: torch.Tensor, drop: str = "none") -> dict[str, torch.Tensor]:
+        if self.kind == "raw":
+            return {"image": image * (drop != "vision"), "attr": attr * (drop != "attr")}
+        u_v = self.vae_v.encode_mean(image.permute(0, 3, 1, 2).float() / 255.0)
+        u_attr = self.vae_attr.encode_mean((attr - self.attr_mean) / self.attr_std)
+        return {"x": torch.cat([u_v * (drop != "vision"), u_attr * (drop != "attr")], -1)}
+
+
+# --------------------------------------------------------------------------------------------------
+# Checkpoints and the exported expert policy
+# --------------------------------------------------------------------------------------------------
+def export_policy(agent: Agent, observer: Observer, args: Args, path: Path) -> None:
+    """``path``: a torch.export program of ``PolicyStep`` with a batch dimension of any size, and its
+    description (env, task, input and state shapes) as the extra file meta.json."""
+    s = ENV_SPECS[args.env]
+    policy = PolicyStep(copy.deepcopy(agent).cpu().eval(), copy.deepcopy(observer).cpu().eval())
+    n = 2
+    image, attr = torch.zeros(n, s["image"], s["image"], 3, dtype=torch.uint8), torch.zeros(n, s["attr"])
+    state = (torch.zeros(n, args.deter), torch.zeros(n, agent.rssm.stoch), torch.zeros(n, s["actions"]))
+    noise_z = torch.rand(n, STOCH, args.classes)
+    noise_a = torch.rand(n, s["actions"]) if agent.discrete else torch.randn(n, s["actions"])
+    example = (image, attr, *state, torch.ones(n), noise_z, noise_a)
+    batch = torch.export.Dim("batch", min=1, max=4096)
+    with torch.no_grad():
+        program = torch.export.export(policy, example, dynamic_shapes=tuple({0: batch} for _ in example))
+    meta = {
+        "kind": "dreamer_policy",
+        "env": args.env,
+        "task": args.task if args.env == "robodesk" else None,
+        "obs": args.obs,
+        "size": args.size,
+        "deter": args.deter,
+        "stoch": agent.rssm.stoch,
+        "latents": [STOCH, args.classes],
+        "actions": s["actions"],
+        "discrete": agent.discrete,
+        "inputs": "image uint8 (n,H,W,3), attr (n,A), deter, stoch, prev_action, first (n,), "
+        "noise_z uniform (n,32,classes), noise_a uniform (discrete) / standard normal (continuous)",
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.pt2")  # torch.export wants the .pt2 suffix
+    try:
+        torch.export.save(program, tmp, extra_files={"meta.json": json.dumps(meta)})
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def observer_fingerprint(observer: Observer) -> float:
+    """A number that changes with the frozen VAE weights (0 for raw observations)."""
+    return float(sum(p.double().sum() for p in observer.parameters()))
+
+
+# Settings that may differ between the parts of one run (how long it runs, how it reports, where its files
+# are); every other setting defines the run, and --resume refuses a change to any of them.
+MAY_CHANGE = set(
+    "total_steps stop_at_criterion eval_every eval_episodes log_every save_every video_every device"
+    " torch_threads resume overwrite checkpoint checkpoint_dir vae_checkpoint exp_name eval_only drop"
+    " compile".split()
+)
+
+
+# Settings an evaluation must share with the agent it loads (they shape its networks or inputs).
+EVAL_KEYS = ("task", "obs", "deter", "hidden", "units", "cnn_depth", "layers", "classes")
+
+
+def load_agent_checkpoint(path: Path, args: Args, fingerprint: float) -> dict:
+    """The Dreamer checkpoint at ``path``, checked against this command: same env, task, observation
+    kind and network widths, the frozen VAEs it was trained on (``--obs vae``), and (``--resume``) every
+    setting that defines the run. A checkpoint of the previous layout (return scale in the loop state) is
+    converted on reading."""
+    train = f"python dreamer_baseline.py --env {args.env} --obs {args.obs} --size {args.size}"
+    if not path.is_file():
+        raise UsageError(f"no agent checkpoint at {path}; train one with `{train}`")
+    ckpt = read_checkpoint(path, train)
+    if ckpt.get("kind") != "dreamer":
+        raise UsageError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected a dreamer agent")
+    bad = non_finite({k: ckpt[k] for k in ("agent", "replay") if k in ckpt})
+    if bad:
+        raise UsageError(
+            f"{path} holds non-finite values ({bad}): it is no state to continue or evaluate; go back to a "
+            "copy saved earlier or train again"
+        )
+    if ckpt.get("env") != args.env:
+        raise UsageError(f"{path} is an agent for env {ckpt.get('env')!r}, but --env is {args.env!r}")
+    saved, now = ckpt["args"], asdict(args)
+    if args.env == "simple_shapes":
+        now["task"] = saved.get("task", now["task"])  # Simple Shapes has no task
+    changed = setting_changes(saved, now, EVAL_KEYS)
+    if changed:
+        raise UsageError(
+            f"{path} was trained with {' '.join(changed)} (size {saved['size']}); pass {' '.join(changed)}"
+        )
+    if abs(ckpt["observer_fingerprint"] - fingerprint) > 1e-6 * max(1.0, abs(fingerprint)):
+        raise UsageError(f"{path} was trained on other VAE weights ({ckpt['vae_checkpoint']})")
+    changed = setting_changes(saved, now, [k for k in now if k not in MAY_CHANGE]) if args.resume else []
+    if changed:
+        raise UsageError(
+            f"{path} was made with {' '.join(changed)}, which differ from this command: give the same "
+            "settings to continue that run, or start a separate one (another --exp-name or --seed)"
+        )
+    if args.resume:
+        check_unrecorded(path, saved, args, MAY_CHANGE)
+    if "return_scale.ema" not in ckpt["agent"]:  # the return scale was a float of the loop state
+        state = ckpt["state"]
+        ckpt["agent"]["return_scale.ema"] = torch.tensor(
+            [state.pop("return_scale", 0.0)], dtype=torch.float64
+        )
+        ckpt["agent"]["return_scale.count"] = torch.tensor([float(state["updates"])], dtype=torch.float64)
+    return ckpt
+
+
+def check_settings(args: Args) -> None:
+    """Every numeric flag in range, and flags that only make sense together, before anything runs."""
+    for flag, value in vars(args).items():  # inf and nan would pass every range check below
+        if isinstance(value, float):
+            require(math.isfinite(value), flag, value, "must be a finite number")
+    check_device(args.device)
+    at_least_1 = "total_steps num_envs batch_size imag_horizon eval_every eval_episodes log_every save_every"
+    at_least_1 += " smoothing deter hidden units cnn_depth layers classes"
+    for flag in at_least_1.split():
+        require(getattr(args, flag) >= 1, flag, getattr(args, flag), "must be at least 1")
+    require(args.batch_length >= 2, "batch_length", args.batch_length, "must be at least 2")
+    for flag in "learning_starts video_every entropy_coef kl_free kl_dyn kl_rep".split():
+        require(getattr(args, flag) >= 0, flag, getattr(args, flag), "must not be negative")
+    for flag in ("train_ratio", "wm_lr", "ac_lr"):
+        require(getattr(args, flag) > 0, flag, getattr(args, flag), "must be positive")
+    require(0 < args.gamma <= 1, "gamma", args.gamma, "must be in (0, 1]")
+    for flag in ("lam", "unimix", "slow_critic_decay", "return_norm_decay"):
+        require(0 <= getattr(args, flag) <= 1, flag, getattr(args, flag), "must be in [0, 1]")
+    need = args.batch_length * args.num_envs
+    rule = f"must hold a replayed sequence (--batch-length entries) per environment: at least {need}"
+    require(args.buffer_size >= need, "buffer_size", args.buffer_size, rule)
+    rule = f"must be at least one agent step ({ACTION_REPEAT['robodesk']} frames)"
+    require(args.episode_length >= ACTION_REPEAT["robodesk"], "episode_length", args.episode_length, rule)
+    require(args.drop == "none" or args.eval_only, "drop", args.drop, "is for evaluation: add --eval-only")
+    rule = f"must be below --total-steps {args.total_steps:,}, or the run would make no update"
+    ok = args.eval_only or args.learning_starts < args.total_steps
+    require(ok, "learning_starts", args.learning_starts, rule)
+    for other in ("overwrite", "eval_only"):
+        if args.resume and getattr(args, other):
+            raise UsageError(f"--resume continues a run; it cannot go with --{other.replace('_', '-')}")
+    if args.env == "robodesk":
+        from envs.robodesk import TASKS
+
+        if args.task not in TASKS:
+            raise UsageError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
+
+
+# --------------------------------------------------------------------------------------------------
+# The run: what the training loop carries, and the bookkeeping around DreamerV3's loop
+# --------------------------------------------------------------------------------------------------
+@dataclass
+class LoopState:
+    """Counters of the training loop (saved in the agent checkpoint, restored by --resume)."""
+
+    env_steps: int = 0  # in the paper's unit (RoboDesk: simulator frames)
+    updates: int = 0
+    flops: int = 0  # forward + backward FLOPs of every update so far (the paper's "RL training FLOPs")
+    flops_per_update: int = 0  # counted on the first update; every update has the same shapes
+    episodes: int = 0
+    criterion_step: int | None = None
+    recent: list = field(default_factory=list)  # the last --smoothing normalised training returns
+    next_eval: int = 0
+    next_save: int = 0
+    next_video: int = 0
+
+
+@dataclass
+class Run:
+    """One training run: its settings, networks, data, counters and outputs."""
+
+    args: Args
+    frozen: Observer  # raw observations, or the frozen VAE means (--obs vae)
+    agent: Agent
+    opts: dict
+    replay: Replay
+    state: LoopState
+    writer: SummaryWriter
+    agent_path: Path
+    pretrained: dict  # {"vae.pt": path} with --obs vae
+    model: str  # "raw" (Dreamer) or "vae" (VAE-Dreamer)
+    ref: tuple | None  # Simple Shapes returns of the random and the greedy policy (normalisation)
+    t0: float = field(default_factory=time.time)
+    steps0: int = 0
+
+    def normalise(self, ret: float) -> float:
+        return (ret - self.ref[0]) / (self.ref[1] - self.ref[0]) if self.ref else float("nan")
+
+
+def load_frozen(args: Args, dev) -> tuple[Observer, dict]:
+    """What the agent observes: raw observations, or the frozen VAE means (yours under
+    --checkpoint-dir, else the bundled ones)."""
+    if args.obs == "raw":
+        return Observer(args.env, "raw", None).to(dev), {}
+    paths = pretrained_paths(args.checkpoint_dir, args.env, {"vae.pt": args.vae_checkpoint})
+    vae = load_pretrained(paths["vae.pt"], "vae", args.env, "collect vae", args.checkpoint_dir, args.task)
+    return Observer(args.env, "vae", vae).to(dev), paths
+
+
+def run_name(args: Args, model: str) -> str:
+    task = "" if args.env == "simple_shapes" else f"_{args.task}"
+    return f"{args.exp_name}_{model}_{args.size}_{args.env}{task}_s{args.seed}"
+
+
+def start_run(args: Args, observer: Observer, agent: Agent, paths: dict, agent_path: Path) -> Run:
+    """Claim the outputs, build optimizers and replay, resume when asked, and print what runs."""
+    runs_dir = Path("runs") / run_name(args, args.obs)
+    # Nothing of an earlier run is overwritten by accident, and the output folders take files now.
+    claim_outputs(
+        [agent_path, agent_path.with_suffix(".policy.pt2"), runs_dir], args.resume, args.overwrite, "dreamer"
+    )
+    ensure_writable(agent_path.parent)
+    ensure_writable(runs_dir)
+    opts = make_optimizers(agent, args)
+    replay = Replay(args.buffer_size, args.num_envs, observer.spaces(args.env), agent.n_actions, args.seed)
+    state = LoopState(
+        next_eval=args.eval_every, next_save=args.save_every, next_video=args.video_every or args.total_steps
+    )
+    if args.resume:
+        ck = load_agent_checkpoint(agent_path, args, observer_fingerprint(observer))
+        agent.load_state_dict(ck["agent"])
+        for name, opt in opts.items():
+            opt.load_state_dict(ck["opts"][name])
+        replay.load_state_dict(ck["replay"])
+        state = LoopState(**ck["state"])
+        torch.set_rng_state(ck["torch_rng"])
+        np.random.set_state(ck["np_rng"])
+        print(f"[{TAG}] resuming {agent_path} at env step {state.env_steps:,}")
+    writer = SummaryWriter(str(runs_dir))
+    if not args.resume:
+        table = "\n".join(f"|{k}|{v}|" for k, v in vars(args).items())
+        writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + table)
+    ref = ss_reference_returns() if args.env == "simple_shapes" else None
+    run = Run(args, observer, agent, opts, replay, state, writer, agent_path, paths, args.obs, ref)
+    run.steps0 = state.env_steps
+    n, total = agent.n_trainable(), TABLE_TOTALS[args.size]
+    name = "VAE-Dreamer" if args.obs == "vae" else "Dreamer"
+    custom = any(getattr(args, k) != v for k, v in MODEL_SIZES[args.size].items())
+    task = "" if args.env == "simple_shapes" else f"_{args.task}"
+    print(
+        f"[{TAG}] {name} {args.size}{' with custom widths' if custom else ''} on {args.env}{task}: "
+        f"{n['total']:,} trainable parameters (world model {n['world_model']:,}, actor {n['actor']:,}, "
+        f"critic {n['critic']:,})"
+        + ("" if custom else f"; the table's total {total / 1e6:.0f}M ({n['total'] / total - 1:+.1%})")
+    )
+    if ref:
+        print(f"[{TAG}] normalised return: random policy {ref[0]:.1f} -> 0, greedy policy {ref[1]:.1f} -> 1")
+    return run
+
+
+def save(run: Run) -> None:
+    """The resumable agent checkpoint (networks, optimizers, replay, counters, random states) and the
+    exported expert policy beside it (never weights a non-finite --compile update has reached)."""
+    a = run.args
+    if a.compile and not all(torch.isfinite(p).all() for p in run.agent.parameters()):
+        step = run.state.env_steps
+        raise FloatingPointError(f"non-finite weights at env step {step:,}; {last_good(run.agent_path)}")
+    atomic_save(
+        {
+            "kind": "dreamer",
+            "env": a.env,
+            "task": a.task,
+            "args": asdict(a),
+            "vae_checkpoint": str(run.pretrained["vae.pt"]) if run.pretrained else None,
+            "observer_fingerprint": observer_fingerprint(run.frozen),
+            "agent": run.agent.state_dict(),
+            "opts": {k: opt.state_dict() for k, opt in run.opts.items()},
+            "replay": run.replay.state_dict(),
+            "state": asdict(run.state),
+            "torch_rng": torch.get_rng_state(),
+            "np_rng": np.random.get_state(),
+        },
+        run.agent_path,
+    )
+    policy = run.agent_path.with_suffix(".policy.pt2")
+    try:
+        export_policy(run.agent, run.frozen, a, policy)
+    except KeyboardInterrupt:  # Ctrl-C while exporting: the agent is saved, its policy not
+        raise KeyboardInterrupt(
+            f"while exporting {policy}; the agent is saved at {run.agent_path}, and the same command "
+            "with --resume exports it"
+        ) from None
+
+
+def bookkeeping(run: Run, logs: dict) -> None:
+    """What is due at this env step: scalars and a progress line, an evaluation, a dream video, a save."""
+    a, s, w = run.args, run.state, run.writer
+    step, repeat = s.env_steps, ACTION_REPEAT[a.env]
+    if step % a.log_every < a.num_envs * repeat and logs:
+        logs = {k: float(v) for k, v in logs.items()}  # the one host sync per log interval
+        if not all(map(math.isfinite, logs.values())):  # --compile checks here, not in the update
+            raise FloatingPointError(f"non-finite losses by env step {step:,}; {last_good(run.agent_path)}")
+        sps = (step - run.steps0) / max(time.time() - run.t0, 1e-9)
+        for k, v in logs.items():
+            w.add_scalar(f"losses/{k}", v, step)
+        w.add_scalar("charts/SPS", sps, step)
+        w.add_scalar("charts/updates", s.updates, step)
+        w.add_scalar("charts/train_flops", s.flops, step)
+        smooth = np.mean(s.recent) if s.recent else float("nan")
+        eta = (a.total_steps - step) / max(sps, 1e-9) / 60
+        print(
+            f"[{TAG}] step {step:,}/{a.total_steps:,} updates {s.updates:,} {sps:.1f} steps/s "
+            f"ETA {eta:.1f} min | wm {logs['loss_wm']:.2f} (kl {logs['kl']:.2f} "
+            f"reward {logs['loss_reward']:.3f}) smoothed normalised return {smooth:.3f}",
+            flush=True,
+        )
+    if step >= s.next_eval:
+        s.next_eval += a.eval_every
+        rets, succ = run_episodes(run.agent, run.frozen, a, a.eval_episodes, "none", seed=10**6 + step)
+        w.add_scalar("eval/episodic_return", rets.mean(), step)
+        if run.ref:
+            w.add_scalar("eval/normalised_return", run.normalise(float(rets.mean())), step)
+        if a.env == "robodesk":
+            w.add_scalar("eval/success_count", succ.mean(), step)
+    if step >= s.next_video:
+        s.next_video += a.video_every or a.total_steps
+        strip = dream_filmstrip(run.agent, run.frozen, a, 16, seed=10**6)
+        if strip is not None:
+            w.add_image("dreams/real_top_imagined_bottom", strip, step, dataformats="HWC")
+    if step >= s.next_save:
+        s.next_save += a.save_every
+        save(run)
+
+
+def finish(run: Run) -> dict:
+    """Save the trained agent, then a final evaluation and dream video; the run's figures."""
+    a, s = run.args, run.state
+    save(run)  # before the final evaluation, so Ctrl-C there loses nothing
+    try:
+        rets, succ = run_episodes(run.agent, run.frozen, a, a.eval_episodes, "none", seed=10**6 + 1)
+        strip = dream_filmstrip(run.agent, run.frozen, a, 16, seed=10**6)
+    except KeyboardInterrupt:
+        run.writer.close()
+        print(f"[{TAG}] interrupted in the final evaluation; the agent is saved at {run.agent_path}")
+        raise SystemExit(130) from None
+    if strip is not None:
+        run.writer.add_image("dreams/real_top_imagined_bottom", strip, s.env_steps, dataformats="HWC")
+    run.writer.close()
+    result = {
+        "env_steps": s.env_steps,
+        "updates": s.updates,
+        "train_flops": s.flops,
+        "criterion_step": s.criterion_step,
+        "final_return": float(rets.mean()),
+        "wall_s": time.time() - run.t0,
+    }
+    if run.ref:
+        result["final_normalised_return"] = run.normalise(float(rets.mean()))
+    if a.env == "robodesk":
+        result["final_success_count"] = float(succ.mean())
+    policy = run.agent_path.with_suffix(".policy.pt2")
+    print(f"[{TAG}] done: {result}; agent checkpoint {run.agent_path}, expert policy {policy}")
+    return result
+
+
+def evaluate_checkpoint(agent: Agent, observer: Observer, args: Args, path: Path) -> dict:
+    """--eval-only: the modality ablation of a trained agent (paper section "Modality Ablation
+    Robustness"): --eval-episodes fresh episodes with --drop removed (its input zeroed)."""
+    agent.load_state_dict(load_agent_checkpoint(path, args, observer_fingerprint(observer))["agent"])
+    rets, succ = run_episodes(agent, observer, args, args.eval_episodes, args.drop, seed=args.seed + 10**6)
+    sem = rets.std(ddof=1) / math.sqrt(len(rets)) if len(rets) > 1 else 0.0
+    out = {"drop": args.drop, "return_mean": float(rets.mean()), "return_sem": float(sem)}
+    line = f"[eval] drop={args.drop}: return {rets.mean():.2f} ± {sem:.2f} (s.e.m., {len(rets)} episodes)"
+    if args.env == "simple_shapes":
+        lo, hi = ss_reference_returns()
+        out["normalised_return"] = (out["return_mean"] - lo) / (hi - lo)
+        line += f", normalised {out['normalised_return']:.3f}"
+    if args.env == "robodesk":
+        out["success_count"] = float(succ.mean())
+        succ_sem = succ.std(ddof=1) / math.sqrt(len(succ)) if len(succ) > 1 else 0.0
+        line += f", success count {succ.mean():.1f} ± {succ_sem:.1f}"
+    print(line)
+    return out
+
+
+# ==== run infrastructure: the same in every agent script (tests/test_shared_code.py) ====
 # --------------------------------------------------------------------------------------------------
 # Pre-trained VAEs and GW (the same block in every agent script): where they are read from, and what to
 # run when they are missing. A Simple Shapes VAE + GW made by `pretrain_vae_gw.py --env simple_shapes
@@ -952,6 +1522,8 @@ def dream_filmstrip(agent: Agent, observer: Observer, args: Args, steps: int, se
 # under --checkpoint-dir always win.
 BUNDLED = Path(__file__).resolve().parent / "envs" / "pretrained"
 ROBODESK_TASKS = "push_green open_slide open_drawer upright_block_off_table flat_block_in_bin"
+
+
 # The RoboDesk pipeline, at the CPU scale of docs/environments.md (times measured on a 2-core CPU) or at
 # the paper's scale (times of docs/pretrain_vae_gw.md: one CPU core collecting, one H100 training).
 ROBODESK_PIPELINE = """the RoboDesk agents read the frozen VAEs and GW of pretrain_vae_gw.py; make them first.
@@ -1236,389 +1808,6 @@ class StopRequest:
         self.restore()
 
 
-def cli(main, args_type) -> None:
-    """Run ``main`` on the parsed command line; a UsageError is printed as one line (exit code 2), and
-    Ctrl-C outside the places that save prints one line too (exit code 130)."""
-    try:
-        main(tyro.cli(args_type))
-    except UsageError as err:
-        print(f"error: {err}", file=sys.stderr, flush=True)
-        raise SystemExit(2) from None
-    except KeyboardInterrupt as err:
-        print(f"interrupted {err}".strip(), flush=True)
-        raise SystemExit(130) from None
-
-
-# --------------------------------------------------------------------------------------------------
-# Checkpoints and the exported expert policy
-# --------------------------------------------------------------------------------------------------
-def export_policy(agent: Agent, observer: Observer, args: Args, path: Path) -> None:
-    """``path``: a torch.export program of ``PolicyStep`` with a batch dimension of any size, and its
-    description (env, task, input and state shapes) as the extra file meta.json."""
-    s = ENV_SPECS[args.env]
-    policy = PolicyStep(copy.deepcopy(agent).cpu().eval(), copy.deepcopy(observer).cpu().eval())
-    n = 2
-    image, attr = torch.zeros(n, s["image"], s["image"], 3, dtype=torch.uint8), torch.zeros(n, s["attr"])
-    state = (torch.zeros(n, args.deter), torch.zeros(n, agent.rssm.stoch), torch.zeros(n, s["actions"]))
-    noise_z = torch.rand(n, STOCH, args.classes)
-    noise_a = torch.rand(n, s["actions"]) if agent.discrete else torch.randn(n, s["actions"])
-    example = (image, attr, *state, torch.ones(n), noise_z, noise_a)
-    batch = torch.export.Dim("batch", min=1, max=4096)
-    with torch.no_grad():
-        program = torch.export.export(policy, example, dynamic_shapes=tuple({0: batch} for _ in example))
-    meta = {
-        "kind": "dreamer_policy",
-        "env": args.env,
-        "task": args.task if args.env == "robodesk" else None,
-        "obs": args.obs,
-        "size": args.size,
-        "deter": args.deter,
-        "stoch": agent.rssm.stoch,
-        "latents": [STOCH, args.classes],
-        "actions": s["actions"],
-        "discrete": agent.discrete,
-        "inputs": "image uint8 (n,H,W,3), attr (n,A), deter, stoch, prev_action, first (n,), "
-        "noise_z uniform (n,32,classes), noise_a uniform (discrete) / standard normal (continuous)",
-    }
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.pt2")  # torch.export wants the .pt2 suffix
-    try:
-        torch.export.save(program, tmp, extra_files={"meta.json": json.dumps(meta)})
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
-def observer_fingerprint(observer: Observer) -> float:
-    """A number that changes with the frozen VAE weights (0 for raw observations)."""
-    return float(sum(p.double().sum() for p in observer.parameters()))
-
-
-# Settings that may differ between the parts of one run (how long it runs, how it reports, where its files
-# are); every other setting defines the run, and --resume refuses a change to any of them.
-MAY_CHANGE = set(
-    "total_steps stop_at_criterion eval_every eval_episodes log_every save_every video_every device"
-    " torch_threads resume overwrite checkpoint checkpoint_dir vae_checkpoint exp_name eval_only drop"
-    " compile".split()
-)
-# Settings an evaluation must share with the agent it loads (they shape its networks or inputs).
-EVAL_KEYS = ("task", "obs", "deter", "hidden", "units", "cnn_depth", "layers", "classes")
-
-
-def load_agent_checkpoint(path: Path, args: Args, fingerprint: float) -> dict:
-    """The Dreamer checkpoint at ``path``, checked against this command: same env, task, observation
-    kind and network widths, the frozen VAEs it was trained on (``--obs vae``), and (``--resume``) every
-    setting that defines the run. A checkpoint of the previous layout (return scale in the loop state) is
-    converted on reading."""
-    train = f"python dreamer_baseline.py --env {args.env} --obs {args.obs} --size {args.size}"
-    if not path.is_file():
-        raise UsageError(f"no agent checkpoint at {path}; train one with `{train}`")
-    ckpt = read_checkpoint(path, train)
-    if ckpt.get("kind") != "dreamer":
-        raise UsageError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected a dreamer agent")
-    bad = non_finite({k: ckpt[k] for k in ("agent", "replay") if k in ckpt})
-    if bad:
-        raise UsageError(
-            f"{path} holds non-finite values ({bad}): it is no state to continue or evaluate; go back to a "
-            "copy saved earlier or train again"
-        )
-    if ckpt.get("env") != args.env:
-        raise UsageError(f"{path} is an agent for env {ckpt.get('env')!r}, but --env is {args.env!r}")
-    saved, now = ckpt["args"], asdict(args)
-    if args.env == "simple_shapes":
-        now["task"] = saved.get("task", now["task"])  # Simple Shapes has no task
-    changed = setting_changes(saved, now, EVAL_KEYS)
-    if changed:
-        raise UsageError(
-            f"{path} was trained with {' '.join(changed)} (size {saved['size']}); pass {' '.join(changed)}"
-        )
-    if abs(ckpt["observer_fingerprint"] - fingerprint) > 1e-6 * max(1.0, abs(fingerprint)):
-        raise UsageError(f"{path} was trained on other VAE weights ({ckpt['vae_checkpoint']})")
-    changed = setting_changes(saved, now, [k for k in now if k not in MAY_CHANGE]) if args.resume else []
-    if changed:
-        raise UsageError(
-            f"{path} was made with {' '.join(changed)}, which differ from this command: give the same "
-            "settings to continue that run, or start a separate one (another --exp-name or --seed)"
-        )
-    if args.resume:
-        check_unrecorded(path, saved, args, MAY_CHANGE)
-    if "return_scale.ema" not in ckpt["agent"]:  # the return scale was a float of the loop state
-        state = ckpt["state"]
-        ckpt["agent"]["return_scale.ema"] = torch.tensor(
-            [state.pop("return_scale", 0.0)], dtype=torch.float64
-        )
-        ckpt["agent"]["return_scale.count"] = torch.tensor([float(state["updates"])], dtype=torch.float64)
-    return ckpt
-
-
-def check_settings(args: Args) -> None:
-    """Every numeric flag in range, and flags that only make sense together, before anything runs."""
-    for flag, value in vars(args).items():  # inf and nan would pass every range check below
-        if isinstance(value, float):
-            require(math.isfinite(value), flag, value, "must be a finite number")
-    check_device(args.device)
-    at_least_1 = "total_steps num_envs batch_size imag_horizon eval_every eval_episodes log_every save_every"
-    at_least_1 += " smoothing deter hidden units cnn_depth layers classes"
-    for flag in at_least_1.split():
-        require(getattr(args, flag) >= 1, flag, getattr(args, flag), "must be at least 1")
-    require(args.batch_length >= 2, "batch_length", args.batch_length, "must be at least 2")
-    for flag in "learning_starts video_every entropy_coef kl_free kl_dyn kl_rep".split():
-        require(getattr(args, flag) >= 0, flag, getattr(args, flag), "must not be negative")
-    for flag in ("train_ratio", "wm_lr", "ac_lr"):
-        require(getattr(args, flag) > 0, flag, getattr(args, flag), "must be positive")
-    require(0 < args.gamma <= 1, "gamma", args.gamma, "must be in (0, 1]")
-    for flag in ("lam", "unimix", "slow_critic_decay", "return_norm_decay"):
-        require(0 <= getattr(args, flag) <= 1, flag, getattr(args, flag), "must be in [0, 1]")
-    need = args.batch_length * args.num_envs
-    rule = f"must hold a replayed sequence (--batch-length entries) per environment: at least {need}"
-    require(args.buffer_size >= need, "buffer_size", args.buffer_size, rule)
-    rule = f"must be at least one agent step ({ACTION_REPEAT['robodesk']} frames)"
-    require(args.episode_length >= ACTION_REPEAT["robodesk"], "episode_length", args.episode_length, rule)
-    require(args.drop == "none" or args.eval_only, "drop", args.drop, "is for evaluation: add --eval-only")
-    rule = f"must be below --total-steps {args.total_steps:,}, or the run would make no update"
-    ok = args.eval_only or args.learning_starts < args.total_steps
-    require(ok, "learning_starts", args.learning_starts, rule)
-    for other in ("overwrite", "eval_only"):
-        if args.resume and getattr(args, other):
-            raise UsageError(f"--resume continues a run; it cannot go with --{other.replace('_', '-')}")
-    if args.env == "robodesk":
-        from envs.robodesk import TASKS
-
-        if args.task not in TASKS:
-            raise UsageError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
-
-
-def count_flops(fn):
-    """``fn()`` and the forward + backward FLOPs it took (torch.utils.flop_counter)."""
-    with FlopCounterMode(display=False) as counter:
-        out = fn()
-    return out, counter.get_total_flops()
-
-
-def updates_due(env_steps: int, args: Args) -> int:
-    """Training updates owed after ``env_steps`` environment steps (the paper's unit: frames on
-    RoboDesk). The table's train ratio 32 is DreamerV3's (replayed steps per agent step): a batch of
-    16 x 65 = 1,040 replayed steps per update gives one update per 32.5 agent steps."""
-    agent_steps = max(env_steps - args.learning_starts, 0) / ACTION_REPEAT[args.env]
-    return int(agent_steps * args.train_ratio / (args.batch_size * args.batch_length))
-
-
-def dream_loss(agent: Agent, deter0: torch.Tensor, stoch0: torch.Tensor, start_w, dynamics: bool, args: Args):
-    """The actor-critic's part of an update: dreams from the replayed posterior states, then their loss."""
-    dream = imagine(agent, deter0, stoch0, args.imag_horizon, grad=dynamics)
-    return actor_critic_loss(
-        agent,
-        dream,
-        start_w,
-        dynamics=dynamics,
-        gamma=args.gamma,
-        lam=args.lam,
-        entropy_coef=args.entropy_coef,
-    )
-
-
-EAGER = {"wm": world_model_loss, "ac": dream_loss}  # the two loss computations of an update
-
-
-def compiled_losses(device, backend: str = "inductor") -> dict:
-    """--compile: both loss computations through torch.compile, with CUDA graphs on a GPU. The optimizer
-    steps stay eager; nothing in the compiled parts reads a value back to the host. (``backend``: the
-    tests also use "aot_eager", the same graphs without generated kernels.)"""
-    mode = "reduce-overhead" if str(device).startswith("cuda") else None
-    # The actor's and the critic's losses come out of one compiled graph whose backward runs once per
-    # loss (each reaches only its own network), so that graph keeps its buffers between the two calls.
-    torch._functorch.config.donated_buffer = False
-    return {k: torch.compile(fn, mode=mode, backend=backend) for k, fn in EAGER.items()}
-
-
-def train_update(
-    agent: Agent, opts: dict, replay: Replay, args: Args, env_step: int = 0, losses: dict = EAGER
-) -> dict:
-    """One training step: the world model on replayed sequences, then the actor-critic on rollouts
-    dreamt from every replayed posterior state. Returns detached tensors, read once per log interval.
-    Eager losses are checked at once (the bad update is not applied); compiled ones at the next log line
-    or save (no host sync in the update)."""
-    dev, check = agent.twohot.bins.device, losses is EAGER
-    batch = {
-        k: torch.as_tensor(v, device=dev)
-        for k, v in replay.sample(args.batch_size, args.batch_length).items()
-    }
-    loss_wm, terms, (deter, stoch) = losses["wm"](agent, batch, args)
-    if check and not torch.isfinite(loss_wm):
-        raise FloatingPointError(f"non-finite world-model loss at env step {env_step:,}")
-    opts["wm"].zero_grad(set_to_none=True)
-    loss_wm.backward()
-    nn.utils.clip_grad_norm_(agent.world_model_parameters(), 1000.0)
-    opts["wm"].step()
-
-    dynamics = args.actor_grad == "dynamics" or (args.actor_grad == "auto" and not agent.discrete)
-    deter0, stoch0 = deter.detach().flatten(0, 1), stoch.detach().flatten(0, 1)
-    start_w = (1 - batch["terminal"]).flatten()  # no dream from an episode's final observation
-    loss_actor, loss_critic, stats = losses["ac"](agent, deter0, stoch0, start_w, dynamics, args)
-    if check and not (torch.isfinite(loss_actor) and torch.isfinite(loss_critic)):
-        raise FloatingPointError(f"non-finite actor-critic loss at env step {env_step:,}")
-    opts["actor"].zero_grad(set_to_none=True)
-    opts["critic"].zero_grad(set_to_none=True)
-    # Each loss reaches only its own network (the world model is trained by L_WM alone); the first call
-    # keeps the graph's buffers for the second (one graph when compiled).
-    loss_actor.backward(inputs=list(agent.actor.parameters()), retain_graph=True)
-    loss_critic.backward(inputs=list(agent.critic.parameters()))
-    nn.utils.clip_grad_norm_(agent.actor.parameters(), 100.0)
-    nn.utils.clip_grad_norm_(agent.critic.parameters(), 100.0)
-    opts["actor"].step()
-    opts["critic"].step()
-    with torch.no_grad():  # slow critic: EMA of the critic
-        for p_slow, p in zip(agent.slow_critic.parameters(), agent.critic.parameters(), strict=True):
-            p_slow.lerp_(p, 1 - args.slow_critic_decay)
-    out = {"loss_wm": loss_wm, **terms, "loss_actor": loss_actor, "loss_critic": loss_critic, **stats}
-    return {k: v.detach().clone() for k, v in out.items()}  # a copy: CUDA graphs reuse their outputs
-
-
-def make_optimizers(agent: Agent, args: Args) -> dict:
-    """Adam per part with the table's rates (eps as DreamerV3)."""
-    return {
-        "wm": torch.optim.Adam(agent.world_model_parameters(), lr=args.wm_lr, eps=1e-8),
-        "actor": torch.optim.Adam(agent.actor.parameters(), lr=args.ac_lr, eps=1e-5),
-        "critic": torch.optim.Adam(agent.critic.parameters(), lr=args.ac_lr, eps=1e-5),
-    }
-
-
-# --------------------------------------------------------------------------------------------------
-# The run: what the training loop carries, and the bookkeeping around DreamerV3's loop
-# --------------------------------------------------------------------------------------------------
-@dataclass
-class LoopState:
-    """Counters of the training loop (saved in the agent checkpoint, restored by --resume)."""
-
-    env_steps: int = 0  # in the paper's unit (RoboDesk: simulator frames)
-    updates: int = 0
-    flops: int = 0  # forward + backward FLOPs of every update so far (the paper's "RL training FLOPs")
-    flops_per_update: int = 0  # counted on the first update; every update has the same shapes
-    episodes: int = 0
-    criterion_step: int | None = None
-    recent: list = field(default_factory=list)  # the last --smoothing normalised training returns
-    next_eval: int = 0
-    next_save: int = 0
-    next_video: int = 0
-
-
-@dataclass
-class Run:
-    """One training run: its settings, networks, data, counters and outputs."""
-
-    args: Args
-    frozen: Observer  # raw observations, or the frozen VAE means (--obs vae)
-    agent: Agent
-    opts: dict
-    replay: Replay
-    state: LoopState
-    writer: SummaryWriter
-    agent_path: Path
-    pretrained: dict  # {"vae.pt": path} with --obs vae
-    model: str  # "raw" (Dreamer) or "vae" (VAE-Dreamer)
-    ref: tuple | None  # Simple Shapes returns of the random and the greedy policy (normalisation)
-    t0: float = field(default_factory=time.time)
-    steps0: int = 0
-
-    def normalise(self, ret: float) -> float:
-        return (ret - self.ref[0]) / (self.ref[1] - self.ref[0]) if self.ref else float("nan")
-
-
-def load_frozen(args: Args, dev) -> tuple[Observer, dict]:
-    """What the agent observes: raw observations, or the frozen VAE means (yours under
-    --checkpoint-dir, else the bundled ones)."""
-    if args.obs == "raw":
-        return Observer(args.env, "raw", None).to(dev), {}
-    paths = pretrained_paths(args.checkpoint_dir, args.env, {"vae.pt": args.vae_checkpoint})
-    vae = load_pretrained(paths["vae.pt"], "vae", args.env, "collect vae", args.checkpoint_dir, args.task)
-    return Observer(args.env, "vae", vae).to(dev), paths
-
-
-def run_name(args: Args, model: str) -> str:
-    task = "" if args.env == "simple_shapes" else f"_{args.task}"
-    return f"{args.exp_name}_{model}_{args.size}_{args.env}{task}_s{args.seed}"
-
-
-def start_run(args: Args, observer: Observer, agent: Agent, paths: dict, agent_path: Path) -> Run:
-    """Claim the outputs, build optimizers and replay, resume when asked, and print what runs."""
-    runs_dir = Path("runs") / run_name(args, args.obs)
-    # Nothing of an earlier run is overwritten by accident, and the output folders take files now.
-    claim_outputs(
-        [agent_path, agent_path.with_suffix(".policy.pt2"), runs_dir], args.resume, args.overwrite, "dreamer"
-    )
-    ensure_writable(agent_path.parent)
-    ensure_writable(runs_dir)
-    opts = make_optimizers(agent, args)
-    replay = Replay(args.buffer_size, args.num_envs, observer.spaces(args.env), agent.n_actions, args.seed)
-    state = LoopState(
-        next_eval=args.eval_every, next_save=args.save_every, next_video=args.video_every or args.total_steps
-    )
-    if args.resume:
-        ck = load_agent_checkpoint(agent_path, args, observer_fingerprint(observer))
-        agent.load_state_dict(ck["agent"])
-        for name, opt in opts.items():
-            opt.load_state_dict(ck["opts"][name])
-        replay.load_state_dict(ck["replay"])
-        state = LoopState(**ck["state"])
-        torch.set_rng_state(ck["torch_rng"])
-        np.random.set_state(ck["np_rng"])
-        print(f"[{TAG}] resuming {agent_path} at env step {state.env_steps:,}")
-    writer = SummaryWriter(str(runs_dir))
-    if not args.resume:
-        table = "\n".join(f"|{k}|{v}|" for k, v in vars(args).items())
-        writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + table)
-    ref = ss_reference_returns() if args.env == "simple_shapes" else None
-    run = Run(args, observer, agent, opts, replay, state, writer, agent_path, paths, args.obs, ref)
-    run.steps0 = state.env_steps
-    n, total = agent.n_trainable(), TABLE_TOTALS[args.size]
-    name = "VAE-Dreamer" if args.obs == "vae" else "Dreamer"
-    custom = any(getattr(args, k) != v for k, v in MODEL_SIZES[args.size].items())
-    task = "" if args.env == "simple_shapes" else f"_{args.task}"
-    print(
-        f"[{TAG}] {name} {args.size}{' with custom widths' if custom else ''} on {args.env}{task}: "
-        f"{n['total']:,} trainable parameters (world model {n['world_model']:,}, actor {n['actor']:,}, "
-        f"critic {n['critic']:,})"
-        + ("" if custom else f"; the table's total {total / 1e6:.0f}M ({n['total'] / total - 1:+.1%})")
-    )
-    if ref:
-        print(f"[{TAG}] normalised return: random policy {ref[0]:.1f} -> 0, greedy policy {ref[1]:.1f} -> 1")
-    return run
-
-
-def save(run: Run) -> None:
-    """The resumable agent checkpoint (networks, optimizers, replay, counters, random states) and the
-    exported expert policy beside it (never weights a non-finite --compile update has reached)."""
-    a = run.args
-    if a.compile and not all(torch.isfinite(p).all() for p in run.agent.parameters()):
-        step = run.state.env_steps
-        raise FloatingPointError(f"non-finite weights at env step {step:,}; {last_good(run.agent_path)}")
-    atomic_save(
-        {
-            "kind": "dreamer",
-            "env": a.env,
-            "task": a.task,
-            "args": asdict(a),
-            "vae_checkpoint": str(run.pretrained["vae.pt"]) if run.pretrained else None,
-            "observer_fingerprint": observer_fingerprint(run.frozen),
-            "agent": run.agent.state_dict(),
-            "opts": {k: opt.state_dict() for k, opt in run.opts.items()},
-            "replay": run.replay.state_dict(),
-            "state": asdict(run.state),
-            "torch_rng": torch.get_rng_state(),
-            "np_rng": np.random.get_state(),
-        },
-        run.agent_path,
-    )
-    policy = run.agent_path.with_suffix(".policy.pt2")
-    try:
-        export_policy(run.agent, run.frozen, a, policy)
-    except KeyboardInterrupt:  # Ctrl-C while exporting: the agent is saved, its policy not
-        raise KeyboardInterrupt(
-            f"while exporting {policy}; the agent is saved at {run.agent_path}, and the same command "
-            "with --resume exports it"
-        ) from None
-
-
 def log_episode(run: Run, ret: float, success: float) -> None:
     """A finished training episode: its return, the smoothed normalised return and the criterion."""
     s, a, step = run.state, run.args, run.state.env_steps
@@ -1642,106 +1831,6 @@ def log_episode(run: Run, ret: float, success: float) -> None:
         )
 
 
-def bookkeeping(run: Run, logs: dict) -> None:
-    """What is due at this env step: scalars and a progress line, an evaluation, a dream video, a save."""
-    a, s, w = run.args, run.state, run.writer
-    step, repeat = s.env_steps, ACTION_REPEAT[a.env]
-    if step % a.log_every < a.num_envs * repeat and logs:
-        logs = {k: float(v) for k, v in logs.items()}  # the one host sync per log interval
-        if not all(map(math.isfinite, logs.values())):  # --compile checks here, not in the update
-            raise FloatingPointError(f"non-finite losses by env step {step:,}; {last_good(run.agent_path)}")
-        sps = (step - run.steps0) / max(time.time() - run.t0, 1e-9)
-        for k, v in logs.items():
-            w.add_scalar(f"losses/{k}", v, step)
-        w.add_scalar("charts/SPS", sps, step)
-        w.add_scalar("charts/updates", s.updates, step)
-        w.add_scalar("charts/train_flops", s.flops, step)
-        smooth = np.mean(s.recent) if s.recent else float("nan")
-        eta = (a.total_steps - step) / max(sps, 1e-9) / 60
-        print(
-            f"[{TAG}] step {step:,}/{a.total_steps:,} updates {s.updates:,} {sps:.1f} steps/s "
-            f"ETA {eta:.1f} min | wm {logs['loss_wm']:.2f} (kl {logs['kl']:.2f} "
-            f"reward {logs['loss_reward']:.3f}) smoothed normalised return {smooth:.3f}",
-            flush=True,
-        )
-    if step >= s.next_eval:
-        s.next_eval += a.eval_every
-        rets, succ = run_episodes(run.agent, run.frozen, a, a.eval_episodes, "none", seed=10**6 + step)
-        w.add_scalar("eval/episodic_return", rets.mean(), step)
-        if run.ref:
-            w.add_scalar("eval/normalised_return", run.normalise(float(rets.mean())), step)
-        if a.env == "robodesk":
-            w.add_scalar("eval/success_count", succ.mean(), step)
-    if step >= s.next_video:
-        s.next_video += a.video_every or a.total_steps
-        strip = dream_filmstrip(run.agent, run.frozen, a, 16, seed=10**6)
-        if strip is not None:
-            w.add_image("dreams/real_top_imagined_bottom", strip, step, dataformats="HWC")
-    if step >= s.next_save:
-        s.next_save += a.save_every
-        save(run)
-
-
-def finish(run: Run) -> dict:
-    """Save the trained agent, then a final evaluation and dream video; the run's figures."""
-    a, s = run.args, run.state
-    save(run)  # before the final evaluation, so Ctrl-C there loses nothing
-    try:
-        rets, succ = run_episodes(run.agent, run.frozen, a, a.eval_episodes, "none", seed=10**6 + 1)
-        strip = dream_filmstrip(run.agent, run.frozen, a, 16, seed=10**6)
-    except KeyboardInterrupt:
-        run.writer.close()
-        print(f"[{TAG}] interrupted in the final evaluation; the agent is saved at {run.agent_path}")
-        raise SystemExit(130) from None
-    if strip is not None:
-        run.writer.add_image("dreams/real_top_imagined_bottom", strip, s.env_steps, dataformats="HWC")
-    run.writer.close()
-    result = {
-        "env_steps": s.env_steps,
-        "updates": s.updates,
-        "train_flops": s.flops,
-        "criterion_step": s.criterion_step,
-        "final_return": float(rets.mean()),
-        "wall_s": time.time() - run.t0,
-    }
-    if run.ref:
-        result["final_normalised_return"] = run.normalise(float(rets.mean()))
-    if a.env == "robodesk":
-        result["final_success_count"] = float(succ.mean())
-    policy = run.agent_path.with_suffix(".policy.pt2")
-    print(f"[{TAG}] done: {result}; agent checkpoint {run.agent_path}, expert policy {policy}")
-    return result
-
-
-def evaluate_checkpoint(agent: Agent, observer: Observer, args: Args, path: Path) -> dict:
-    """--eval-only: the modality ablation of a trained agent (paper section "Modality Ablation
-    Robustness"): --eval-episodes fresh episodes with --drop removed (its input zeroed)."""
-    agent.load_state_dict(load_agent_checkpoint(path, args, observer_fingerprint(observer))["agent"])
-    rets, succ = run_episodes(agent, observer, args, args.eval_episodes, args.drop, seed=args.seed + 10**6)
-    sem = rets.std(ddof=1) / math.sqrt(len(rets)) if len(rets) > 1 else 0.0
-    out = {"drop": args.drop, "return_mean": float(rets.mean()), "return_sem": float(sem)}
-    line = f"[eval] drop={args.drop}: return {rets.mean():.2f} ± {sem:.2f} (s.e.m., {len(rets)} episodes)"
-    if args.env == "simple_shapes":
-        lo, hi = ss_reference_returns()
-        out["normalised_return"] = (out["return_mean"] - lo) / (hi - lo)
-        line += f", normalised {out['normalised_return']:.3f}"
-    if args.env == "robodesk":
-        out["success_count"] = float(succ.mean())
-        succ_sem = succ.std(ddof=1) / math.sqrt(len(succ)) if len(succ) > 1 else 0.0
-        line += f", success count {succ.mean():.1f} ± {succ_sem:.1f}"
-    print(line)
-    return out
-
-
-def random_actions(rng: np.random.Generator, n: int, action_dim: int, discrete: bool, dev) -> torch.Tensor:
-    """The uniformly random policy that fills the replay buffer before learning starts."""
-    if discrete:
-        a = F.one_hot(torch.as_tensor(rng.integers(0, action_dim, n)), action_dim)
-    else:
-        a = torch.as_tensor(rng.uniform(-1, 1, (n, action_dim)))
-    return a.float().to(dev)
-
-
 def interrupted(run: Run) -> None:
     """Ctrl-C or SIGTERM: the step and its updates are done; save and exit 130."""
     save(run)
@@ -1754,99 +1843,17 @@ def interrupted(run: Run) -> None:
     raise SystemExit(130)  # the shell's code for a run ended by Ctrl-C
 
 
-# --------------------------------------------------------------------------------------------------
-# DreamerV3's training loop
-# --------------------------------------------------------------------------------------------------
-def main(args: Args) -> dict:
-    args = args.resolve()
-    check_settings(args)
-    if args.torch_threads:
-        torch.set_num_threads(args.torch_threads)
-    dev = torch.device(args.device)
-    observer, paths = load_frozen(args, dev)
-    random.seed(args.seed)
-    np.random.seed(args.seed)
-    torch.manual_seed(args.seed)
-    agent = Agent(args.env, observer.spaces(args.env), args).to(dev)
-    default = Path(args.checkpoint_dir) / args.env / "agents" / f"{run_name(args, args.obs)}.pt"
-    agent_path = Path(args.checkpoint) if args.checkpoint else default
-    if args.eval_only:
-        return evaluate_checkpoint(agent, observer, args, agent_path)
-    run = start_run(args, observer, agent, paths, agent_path)
-    state, replay, ne, n_actions = run.state, run.replay, args.num_envs, agent.n_actions
-    losses = compiled_losses(dev) if args.compile else EAGER
-
-    envs_ = make_envs(args, ne)
-    obs, _ = envs_.reset(seed=args.seed + state.env_steps)
-    idx = np.arange(ne)
-    deter, stoch = agent.rssm.initial(ne, dev)
-    prev_a = torch.zeros(ne, n_actions, device=dev)
-    reward, terminal, first = np.zeros(ne), np.zeros(ne), np.ones(ne)
-    ep_ret, ep_succ = np.zeros(ne), np.zeros(ne)
-    rng = np.random.default_rng(args.seed + state.env_steps)
-    logs = {}
-    stop = StopRequest(TAG)
-    while state.env_steps < args.total_steps:
-        if args.stop_at_criterion and state.criterion_step is not None:
-            break
-        # Store the entry (o_t, a_{t-1}, r_t, terminal_t, first_t), then act on the filtered state.
-        o = observer(*as_tensors(obs, dev))
-        entry = {k: v.cpu().numpy() for k, v in o.items()}
-        replay.add(
-            idx,
-            entry | {"action": prev_a.cpu().numpy(), "reward": reward, "terminal": terminal, "first": first},
-        )
-        with torch.no_grad():
-            embed = agent.encoder(o)
-            first_t = torch.as_tensor(first, device=dev, dtype=torch.float32)
-            deter, stoch, _, _ = agent.rssm.obs_step(deter, stoch, prev_a, embed, first_t)
-            if state.env_steps < args.learning_starts:
-                a = random_actions(rng, ne, n_actions, agent.discrete, dev)
-            else:
-                a = agent.actor.act(feat_of(deter, stoch))
-        obs, r, term, trunc, info = envs_.step(action_for_env(a, agent.discrete))
-        done = term | trunc
-        ep_ret += r
-        ep_succ += step_success(info, ne)
-        state.env_steps += ne * ACTION_REPEAT[args.env]  # the paper's unit: simulator frames on RoboDesk
-        prev_a, reward, terminal, first = a, r.astype(np.float64), term.astype(np.float64), np.zeros(ne)
-        if done.any():
-            # The final observation is its own entry; the reset observation starts the next episode.
-            ends = np.flatnonzero(done)
-            o_final = {
-                k: v.cpu().numpy()
-                for k, v in observer(*as_tensors(final_observations(info, ends), dev)).items()
-            }
-            last = {"action": a[ends].cpu().numpy(), "reward": r[ends], "terminal": term[ends].astype(float)}
-            replay.add(ends, o_final | last | {"first": np.zeros(len(ends))})
-            for i in ends:
-                log_episode(run, float(ep_ret[i]), float(ep_succ[i]))
-            ep_ret[ends], ep_succ[ends] = 0.0, 0.0
-            reward[ends], terminal[ends], first[ends] = 0.0, 0.0, 1.0
-            prev_a[torch.as_tensor(ends, device=dev)] = 0.0  # a new episode has no previous action
-
-        # Train: the updates owed by the train ratio, once the buffer holds a full sequence.
-        while state.updates < updates_due(state.env_steps, args) and replay.ready(args.batch_length):
-            try:
-                if state.flops_per_update == 0:  # same shapes every update: count the first one
-                    logs, state.flops_per_update = count_flops(
-                        lambda: train_update(agent, run.opts, replay, args, state.env_steps)
-                    )
-                else:
-                    logs = train_update(agent, run.opts, replay, args, state.env_steps, losses)
-            except FloatingPointError as err:
-                raise FloatingPointError(f"{err}; {last_good(run.agent_path)}") from err
-            state.updates += 1
-            state.flops += state.flops_per_update
-
-        bookkeeping(run, logs)
-        if stop.requested:
-            envs_.close()
-            stop.restore()
-            interrupted(run)
-    stop.restore()
-    envs_.close()
-    return finish(run)
+def cli(main, args_type) -> None:
+    """Run ``main`` on the parsed command line; a UsageError is printed as one line (exit code 2), and
+    Ctrl-C outside the places that save prints one line too (exit code 130)."""
+    try:
+        main(tyro.cli(args_type))
+    except UsageError as err:
+        print(f"error: {err}", file=sys.stderr, flush=True)
+        raise SystemExit(2) from None
+    except KeyboardInterrupt as err:
+        print(f"interrupted {err}".strip(), flush=True)
+        raise SystemExit(130) from None
 
 
 if __name__ == "__main__":

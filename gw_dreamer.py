@@ -220,10 +220,14 @@ TABLE = {
         criterion=0.70,
     ),
 }
+
+
 # --cpu-preset on RoboDesk: 200,000 frames in about 2.3 h on one core beside another run (docs/gw_dreamer.md)
 # An evaluation's 10 episodes are 20,000 frames of acting, so the preset evaluates every 100,000.
 CPU_TABLE = {"robodesk": dict(total_steps=200_000, batch_size=16, batch_length=64, eval_every=100_000)}
 TAG = "gw_dreamer"  # the prefix of every line this script prints
+
+
 # Network sizes of the appendix tables ("GRU architecture", "World Model heads", "Actor-Critic").
 SIZES = {
     "simple_shapes": {
@@ -245,6 +249,8 @@ SIZES = {
         "actions": 5,
     },
 }
+
+
 # --cpu-preset: the same networks, a quarter as wide (the GRU state h_t of 256 instead of 1024).
 CPU_SIZES = {
     "robodesk": {
@@ -269,76 +275,10 @@ def sizes_of(env: str, cpu_preset: bool = False) -> dict:
     return CPU_SIZES[env] if cpu_preset and env in CPU_SIZES else SIZES[env]
 
 
-# Simulator frames per agent step. The paper counts RoboDesk "environment steps" in frames ("2,000
-# environment steps but with an action repetition of 4 steps, leading to 500 chosen actions"), so step
-# counts (--total-steps, criteria, logs) are frames there; Simple Shapes has no action repeat.
-ACTION_REPEAT = {"simple_shapes": 1, "robodesk": 4}
 ENV_SPECS = {  # must agree with pretrain_vae_gw.py (checked against the checkpoints)
     "simple_shapes": {"image": 32, "attr": 11, "latent": 10, "z": 10, "gw_hidden": 64},
     "robodesk": {"image": 64, "attr": 76, "latent": 40, "z": 76, "gw_hidden": 512},
 }
-
-
-# --------------------------------------------------------------------------------------------------
-# Frozen representations: the VAEs and the GW of pretrain_vae_gw.py (same layers, so the same weights load)
-# --------------------------------------------------------------------------------------------------
-def conv_block(cin: int, cout: int, transpose: bool = False, stride: int = 2) -> nn.Sequential:
-    conv = (nn.ConvTranspose2d if transpose else nn.Conv2d)(
-        cin, cout, 4 if stride == 2 else 3, stride, 1, bias=False
-    )
-    return nn.Sequential(conv, nn.BatchNorm2d(cout), nn.ReLU())
-
-
-class VisualVAE(nn.Module):
-    """Appendix Tables VAE_v: conv encoder to the mean/log-variance of u_v, decoder back to an image."""
-
-    def __init__(self, image: int, latent: int, width: int = 1024):
-        super().__init__()
-        n_down = int(np.log2(image)) - 1
-        chans = [width // 2 ** (n_down - 1 - i) for i in range(n_down)]
-        layers, cin = [], 3
-        for c in chans:
-            layers.append(conv_block(cin, c))
-            cin = c
-        self.encoder = nn.Sequential(*layers, nn.Flatten())
-        self.q = nn.Linear(width * 4, 2 * latent)
-        n_up = int(np.log2(image // 8))
-        up = [width // 2 ** (i + 1) for i in range(n_up)] + [width // 2**n_up]
-        self.width = width
-        self.fc = nn.Linear(latent, 8 * 8 * width)
-        dec, cin = [], width
-        for i, c in enumerate(up):
-            dec.append(conv_block(cin, c, transpose=True, stride=2 if i < n_up else 1))
-            cin = c
-        self.decoder = nn.Sequential(*dec, nn.Conv2d(cin, 3, 3, 1, 1), nn.Sigmoid())
-
-    def encode_mean(self, x: torch.Tensor) -> torch.Tensor:
-        return self.q(self.encoder(x)).chunk(2, dim=-1)[0]
-
-    def decode(self, u: torch.Tensor) -> torch.Tensor:
-        return self.decoder(self.fc(u).view(-1, self.width, 8, 8))
-
-
-class AttrVAE(nn.Module):
-    """Appendix Tables VAE_attr (only the encoder's mean is used here)."""
-
-    def __init__(self, attr: int, latent: int, hidden: int, depth: int):
-        super().__init__()
-        enc, cin = [], attr
-        for _ in range(depth):
-            enc += [nn.Linear(cin, hidden), nn.ReLU()]
-            cin = hidden
-        self.encoder = nn.Sequential(
-            *enc, nn.Linear(hidden, latent), nn.ReLU(), nn.Linear(latent, 2 * latent)
-        )
-        dec, cin = [], latent
-        for _ in range(depth):
-            dec += [nn.Linear(cin, hidden), nn.ReLU()]
-            cin = hidden
-        self.decoder = nn.Sequential(*dec, nn.Linear(hidden, attr))
-
-    def encode_mean(self, a: torch.Tensor) -> torch.Tensor:
-        return self.encoder(a).chunk(2, dim=-1)[0]
 
 
 def mlp(cin: int, hidden: int, cout: int, depth: int) -> nn.Sequential:
@@ -347,108 +287,6 @@ def mlp(cin: int, hidden: int, cout: int, depth: int) -> nn.Sequential:
         layers += [nn.Linear(cin, hidden), nn.ReLU()]
         cin = hidden
     return nn.Sequential(*layers, nn.Linear(hidden, cout))
-
-
-class GlobalWorkspace(nn.Module):
-    """Encoders e_v, e_attr and decoders d_v, d_attr (appendix Tables GW_SS / GW_Rob)."""
-
-    def __init__(self, latent: int, z: int, hidden: int):
-        super().__init__()
-        self.e = nn.ModuleDict({"v": mlp(latent, hidden, z, 4), "attr": mlp(latent, hidden, z, 4)})
-        self.d = nn.ModuleDict({"v": mlp(z, hidden, latent, 4), "attr": mlp(z, hidden, latent, 4)})
-
-    def fuse(self, u_v, u_attr, alpha_v: float, alpha_attr: float) -> torch.Tensor:
-        """z = tanh(alpha_v e_v(u_v) + alpha_attr e_attr(u_attr)) (eq. of Figure 1)."""
-        return torch.tanh(alpha_v * self.e["v"](u_v) + alpha_attr * self.e["attr"](u_attr))
-
-
-class FrozenEncoder(nn.Module):
-    """Observation -> z_t through the frozen VAE means and the frozen GW (Algorithm 1, line 7)."""
-
-    def __init__(self, env: str, vae: dict, gw: dict):
-        """``vae`` and ``gw``: checkpoints of pretrain_vae_gw.py (see ``load_encoder``)."""
-        super().__init__()
-        s = ENV_SPECS[env]
-        self.vae_v = VisualVAE(s["image"], s["latent"], vae["config"]["vae_width"])
-        depth, hidden = (2, 64) if env == "simple_shapes" else (4, 512)
-        self.vae_attr = AttrVAE(s["attr"], s["latent"], hidden, depth)
-        self.gw = GlobalWorkspace(s["latent"], s["z"], s["gw_hidden"])
-        self.vae_v.load_state_dict(vae["vae_v"])
-        self.vae_attr.load_state_dict(vae["vae_attr"])
-        self.gw.load_state_dict(gw["gw"])
-        self.register_buffer("attr_mean", torch.as_tensor(vae["attr_mean"], dtype=torch.float32))
-        self.register_buffer("attr_std", torch.as_tensor(vae["attr_std"], dtype=torch.float32))
-        self.preset = gw.get("preset", "gw")  # "gw" or "clip": GW-Dreamer or CLIP-Dreamer
-        # RoboDesk tasks whose expert data the GW was trained on (the others are zero-shot for it).
-        labels = gw.get("data", {}).get("samples_per_source_and_task", {})
-        self.expert_tasks = sorted(k.split("/", 1)[1] for k in labels if k.startswith("expert/"))
-        # RoboDesk: the image quality of the GW's training data (agents must see the same images).
-        self.render_quality = gw.get("args", {}).get("render_quality", "faithful")
-        self.z_dim = s["z"]
-        self.eval().requires_grad_(False)
-
-    @torch.no_grad()
-    def forward(self, obs: dict[str, np.ndarray], alpha_v: float = 0.5, alpha_attr: float = 0.5):
-        dev = self.attr_mean.device
-        # A removed modality contributes nothing: its fusion weight is 0 and its input is not read.
-        absent = torch.zeros(len(obs["attr"]), self.gw.e["v"][0].in_features, device=dev)
-        u_v = u_attr = absent
-        if alpha_v > 0:
-            image = torch.as_tensor(obs["image"], device=dev).permute(0, 3, 1, 2).float() / 255.0
-            u_v = self.vae_v.encode_mean(image)
-        if alpha_attr > 0:
-            attr = torch.as_tensor(obs["attr"], device=dev, dtype=torch.float32)
-            u_attr = self.vae_attr.encode_mean((attr - self.attr_mean) / self.attr_std)
-        return self.gw.fuse(u_v, u_attr, alpha_v, alpha_attr)
-
-    @torch.no_grad()
-    def decode_image(self, z: torch.Tensor) -> torch.Tensor:
-        """Image broadcast from z: d_v then the visual VAE decoder (the dream frames)."""
-        return self.vae_v.decode(self.gw.d["v"](z))
-
-
-def load_encoder(
-    env: str, vae_path: Path, gw_path: Path, checkpoint_dir: str = "checkpoints", task: str = "push_green"
-) -> FrozenEncoder:
-    """The frozen encoder from the checkpoints of pretrain_vae_gw.py, checked against ``env``."""
-    vae = load_pretrained(vae_path, "vae", env, "collect vae gw", checkpoint_dir, task)  # the GW needs it too
-    clip = " --loss-preset clip" if gw_path.name == "clip.pt" else ""  # CLIP-Dreamer's contrastive model
-    gw = load_pretrained(gw_path, "gw", env, "gw", checkpoint_dir, task, clip)
-    check_gw_vae_pair(vae, gw, vae_path, gw_path, checkpoint_dir)
-    try:
-        return FrozenEncoder(env, vae, gw)
-    except RuntimeError as err:  # a state dict of other sizes
-        raise UsageError(f"{vae_path} / {gw_path} do not fit the {env} networks: {err}") from err
-
-
-def vae_digest(vae: dict) -> str:
-    """Identity of a VAE checkpoint's weights: SHA-256 of its tensors with floating ones rounded to
-    float16, the precision of the bundled copies, so that a bundled VAE keeps the digest of its source."""
-    h = hashlib.sha256()
-    for part in ("vae_v", "vae_attr"):
-        for key, t in sorted(vae[part].items()):
-            t = t.detach().cpu()
-            h.update(key.encode() + (t.half() if torch.is_floating_point(t) else t).numpy().tobytes())
-    return h.hexdigest()[:16]
-
-
-def check_gw_vae_pair(vae: dict, gw: dict, vae_path: Path, gw_path: Path, checkpoint_dir: str) -> None:
-    """A GW reads the latents of the VAE it was trained on (pretrain_vae_gw.py records that VAE's digest);
-    with any other VAE its z means nothing, so a mismatch stops the run."""
-    if gw.get("vae_digest", vae_digest(vae)) != vae_digest(vae):
-        made = gw.get("args", {})  # the GW's own flags: its scale and the data it read
-        extra = " --cpu-preset" if made.get("cpu_preset") else ""
-        extra += f" --data-dir {made['data_dir']}" if made.get("data_dir", "data") != "data" else ""
-        extra += f" --loss-preset {gw.get('preset', 'gw')} --overwrite"
-        extra += "" if checkpoint_dir == "checkpoints" else f" --checkpoint-dir {checkpoint_dir}"
-        remake = f"python pretrain_vae_gw.py --env {gw['env']} --stages gw{extra}"
-        raise UsageError(
-            f"{gw_path} was trained on the latents of another VAE than {vae_path} (the VAE was remade "
-            f"after it): retrain the GW on this VAE with `{remake}`"
-        )
-
-
-FUSION = {"none": (0.5, 0.5), "vision": (0.0, 1.0), "attr": (1.0, 0.0)}  # (alpha_v, alpha_attr)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -937,6 +775,99 @@ def count_flops(fn):
 
 
 # --------------------------------------------------------------------------------------------------
+# Algorithm 1
+# --------------------------------------------------------------------------------------------------
+def main(args: Args) -> dict:
+    args = args.resolve()
+    check_settings(args)
+    if args.torch_threads:
+        torch.set_num_threads(args.torch_threads)
+    dev = torch.device(args.device)
+    encoder, paths = load_frozen(args, dev)  # Require: the pre-trained (frozen) GW
+    random.seed(args.seed)
+    np.random.seed(args.seed)
+    torch.manual_seed(args.seed)
+    agent = Agent(args.env, encoder.z_dim, args.reward_loss, args.return_norm_decay, args.cpu_preset).to(dev)
+    model = "gw" if encoder.preset == "gw" else "clip"
+    default = Path(args.checkpoint_dir) / args.env / "agents" / f"{run_name(args, model)}.pt"
+    agent_path = Path(args.checkpoint) if args.checkpoint else default
+    if args.eval_only:
+        return evaluate_checkpoint(agent, encoder, args, agent_path)
+    # Initialize the world model, the actor-critic and the replay buffer (or continue a saved run).
+    run = start_run(args, encoder, agent, paths, agent_path)
+    state, replay, n_envs, repeat = run.state, run.replay, args.num_envs, ACTION_REPEAT[args.env]
+    losses = compiled_losses(dev) if args.compile else EAGER
+    action_dim = SIZES[args.env]["actions"]
+
+    envs_ = make_envs(args, n_envs)
+    obs, _ = envs_.reset(seed=args.seed + state.env_steps)
+    h = torch.zeros(n_envs, agent.wm.hidden, device=dev)
+    first = np.ones(n_envs, np.float32)
+    ep_ret, ep_succ = np.zeros(n_envs), np.zeros(n_envs)
+    rng = np.random.default_rng(args.seed + state.env_steps)
+    logs = {}
+    stop = StopRequest(TAG)
+    while state.env_steps < args.total_steps:
+        if args.stop_at_criterion and state.criterion_step is not None:
+            break
+        # Collect transitions (o_t, a_t, o_{t+1}, r_{t+1}, d_{t+1}) with the current policy into the
+        # replay buffer, as z_t = GW(o_t) (uniformly random actions before learning starts).
+        with torch.no_grad():
+            z = encoder(obs)
+            if state.env_steps < args.learning_starts:
+                a = random_actions(rng, n_envs, action_dim, agent.discrete, dev)
+            else:
+                a = agent.actor.act(agent.features(h, z))
+            h = agent.wm.step(h, z, a)
+        obs, r, term, trunc, info = envs_.step(action_for_env(a, agent.discrete))
+        replay.add(np.arange(n_envs), z.cpu().numpy(), a.cpu().numpy(), r, term, first, np.zeros(n_envs))
+        first = np.zeros(n_envs, np.float32)
+        ep_ret += r
+        ep_succ += step_success(info, n_envs)
+        state.env_steps += n_envs * repeat  # the paper's unit: simulator frames on RoboDesk
+        done = term | trunc
+        if done.any():  # the episode's final observation closes its stream (an entry marked last)
+            ends = np.flatnonzero(done)
+            z_final = encoder(final_observations(info, ends)).cpu().numpy()
+            zeros, no_action = np.zeros(len(ends)), np.zeros((len(ends), action_dim))
+            replay.add(ends, z_final, no_action, zeros, zeros, zeros, np.ones(len(ends)))
+            for i in ends:
+                log_episode(run, float(ep_ret[i]), float(ep_succ[i]))
+            ep_ret[ends], ep_succ[ends], first[ends] = 0.0, 0.0, 1.0
+            h[torch.as_tensor(ends, device=dev)] = 0.0
+
+        # Training steps: the updates owed by the train ratio, each the world model then the
+        # actor-critic in dreams (train_update), once the buffer holds a full batch sequence.
+        while state.updates < updates_due(state.env_steps, args) and replay.ready(args.batch_length):
+            try:
+                if state.flops_per_update == 0:  # same shapes every update: count the first one
+                    logs, state.flops_per_update = count_flops(
+                        lambda: train_update(agent, run.opts, replay, args, state.env_steps)
+                    )
+                else:
+                    logs = train_update(agent, run.opts, replay, args, state.env_steps, losses)
+            except FloatingPointError as err:
+                raise FloatingPointError(f"{err}; {last_good(run.agent_path)}") from err
+            state.updates += 1
+            state.flops += state.flops_per_update
+
+        bookkeeping(run, logs)
+        if stop.requested:
+            envs_.close()
+            stop.restore()
+            interrupted(run)
+    stop.restore()
+    envs_.close()
+    return finish(run)
+
+
+# Simulator frames per agent step. The paper counts RoboDesk "environment steps" in frames ("2,000
+# environment steps but with an action repetition of 4 steps, leading to 500 chosen actions"), so step
+# counts (--total-steps, criteria, logs) are frames there; Simple Shapes has no action repeat.
+ACTION_REPEAT = {"simple_shapes": 1, "robodesk": 4}
+
+
+# --------------------------------------------------------------------------------------------------
 # Environments and evaluation
 # --------------------------------------------------------------------------------------------------
 def make_envs(args: Args, num_envs: int):
@@ -1037,308 +968,177 @@ def dream_filmstrip(agent: Agent, encoder: FrozenEncoder, args: Args, steps: int
     return np.concatenate([np.concatenate(real, 1), np.concatenate(dream_img, 1)], 0)
 
 
-# --------------------------------------------------------------------------------------------------
-# Pre-trained VAEs and GW (the same block in every agent script): where they are read from, and what to
-# run when they are missing. A Simple Shapes VAE + GW made by `pretrain_vae_gw.py --env simple_shapes
-# --cpu-preset` ships in envs/pretrained/ so the main job runs on a fresh clone; checkpoints of your own
-# under --checkpoint-dir always win.
-BUNDLED = Path(__file__).resolve().parent / "envs" / "pretrained"
-ROBODESK_TASKS = "push_green open_slide open_drawer upright_block_off_table flat_block_in_bin"
-# The RoboDesk pipeline, at the CPU scale of docs/environments.md (times measured on a 2-core CPU) or at
-# the paper's scale (times of docs/pretrain_vae_gw.md: one CPU core collecting, one H100 training).
-ROBODESK_PIPELINE = """the RoboDesk agents read the frozen VAEs and GW of pretrain_vae_gw.py; make them first.
-  CPU scale (one GW for five tasks, fast images; docs/pretrain_vae_gw.md):
-    python pretrain_vae_gw.py --env robodesk --cpu-preset{cd}   # about 70 min on 2 cores
-    then this command with --cpu-preset
-  paper scale (GPU): python pretrain_vae_gw.py --env robodesk --task {task}{cd}
-    (2M samples: 11 h of collection on one core with --render-quality fast, 190 h faithful; then
-    the visual VAE 30 h, the attribute VAE 35 min and the GW 1.5 h on one H100)"""
-
-
-def pretrained_paths(checkpoint_dir: str, env: str, wanted: dict[str, str | None]) -> dict[str, Path]:
-    """{file name: path} for the pre-trained checkpoints a run needs: the flag's path when given, else
-    <checkpoint_dir>/<env>/<name>, else, when that folder holds none of them, the bundled copies."""
-    folder = Path(checkpoint_dir) / env
-    paths = {name: Path(given) if given else folder / name for name, given in wanted.items()}
-    defaults = [name for name, given in wanted.items() if not given]
-    if (
-        defaults
-        and not any((folder / name).is_file() for name in defaults)
-        and all((BUNDLED / env / name).is_file() for name in defaults)
-    ):
-        paths |= {name: BUNDLED / env / name for name in defaults}
-        print(
-            f"[pretrained] {folder} holds no {' / '.join(defaults)}: using the bundled copies in "
-            f"envs/pretrained/{env}/ (made by `python pretrain_vae_gw.py --env {env} --cpu-preset`)"
-        )
-    return paths
-
-
-def pretrain_command(env: str, checkpoint_dir: str, stages: str, extra: str = "") -> str:
-    """The pretrain_vae_gw.py command that makes a missing checkpoint, with the user's --checkpoint-dir."""
-    preset = " --cpu-preset" if env == "simple_shapes" else ""  # the scale that runs on a CPU
-    cd = "" if checkpoint_dir == "checkpoints" else f" --checkpoint-dir {checkpoint_dir}"
-    return f"python pretrain_vae_gw.py --env {env} --stages {stages}{preset}{extra}{cd}"
-
-
-def load_pretrained(
-    path: Path,
-    kind: str,
-    env: str,
-    stages: str,
-    checkpoint_dir: str = "checkpoints",
-    task: str = "push_green",
-    extra: str = "",
-) -> dict:
-    """A checkpoint of pretrain_vae_gw.py, checked against ``kind`` and ``env``; when it is missing, the
-    error gives the command that makes it (on RoboDesk, the whole pipeline)."""
-    make = pretrain_command(env, checkpoint_dir, stages, extra)
-    if not path.is_file():
-        if env == "robodesk":
-            cd = "" if checkpoint_dir == "checkpoints" else f" --checkpoint-dir {checkpoint_dir}"
-            raise UsageError(
-                f"no {kind} checkpoint at {path}: "
-                + ROBODESK_PIPELINE.format(tasks=ROBODESK_TASKS, task=task, cd=cd)
-            )
-        raise UsageError(f"no {kind} checkpoint at {path}; make it with `{make}`")
-    ckpt = read_checkpoint(path, make)
-    if ckpt.get("kind") != kind:
-        raise UsageError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected {kind!r}")
-    if ckpt.get("env") != env:
-        raise UsageError(
-            f"{path} was made for env {ckpt.get('env')!r}, but this run is for env {env!r}; "
-            f"make a matching one with `{make}`"
-        )
-    return ckpt
+def random_actions(rng: np.random.Generator, n: int, action_dim: int, discrete: bool, dev) -> torch.Tensor:
+    """The uniformly random policy that fills the replay buffer before learning starts."""
+    if discrete:
+        a = F.one_hot(torch.as_tensor(rng.integers(0, action_dim, n)), action_dim)
+    else:
+        a = torch.as_tensor(rng.uniform(-1, 1, (n, action_dim)))
+    return a.float().to(dev)
 
 
 # --------------------------------------------------------------------------------------------------
-# Safe runs: a new run never overwrites an earlier one, a resumed run is the same run, checkpoints are
-# written atomically, and bad settings or unreadable files stop the run at once with one line
+# Frozen representations: the VAEs and the GW of pretrain_vae_gw.py (same layers, so the same weights load)
 # --------------------------------------------------------------------------------------------------
-class UsageError(ValueError):
-    """A mistake in the command line or in the files it names: the CLI prints the message and exits 2."""
+def conv_block(cin: int, cout: int, transpose: bool = False, stride: int = 2) -> nn.Sequential:
+    conv = (nn.ConvTranspose2d if transpose else nn.Conv2d)(
+        cin, cout, 4 if stride == 2 else 3, stride, 1, bias=False
+    )
+    return nn.Sequential(conv, nn.BatchNorm2d(cout), nn.ReLU())
 
 
-def require(ok: bool, flag: str, value, rule: str) -> None:
-    if not ok:
-        raise UsageError(f"--{flag.replace('_', '-')} {value}: {rule}")
+class VisualVAE(nn.Module):
+    """Appendix Tables VAE_v: conv encoder to the mean/log-variance of u_v, decoder back to an image."""
+
+    def __init__(self, image: int, latent: int, width: int = 1024):
+        super().__init__()
+        n_down = int(np.log2(image)) - 1
+        chans = [width // 2 ** (n_down - 1 - i) for i in range(n_down)]
+        layers, cin = [], 3
+        for c in chans:
+            layers.append(conv_block(cin, c))
+            cin = c
+        self.encoder = nn.Sequential(*layers, nn.Flatten())
+        self.q = nn.Linear(width * 4, 2 * latent)
+        n_up = int(np.log2(image // 8))
+        up = [width // 2 ** (i + 1) for i in range(n_up)] + [width // 2**n_up]
+        self.width = width
+        self.fc = nn.Linear(latent, 8 * 8 * width)
+        dec, cin = [], width
+        for i, c in enumerate(up):
+            dec.append(conv_block(cin, c, transpose=True, stride=2 if i < n_up else 1))
+            cin = c
+        self.decoder = nn.Sequential(*dec, nn.Conv2d(cin, 3, 3, 1, 1), nn.Sigmoid())
+
+    def encode_mean(self, x: torch.Tensor) -> torch.Tensor:
+        return self.q(self.encoder(x)).chunk(2, dim=-1)[0]
+
+    def decode(self, u: torch.Tensor) -> torch.Tensor:
+        return self.decoder(self.fc(u).view(-1, self.width, 8, 8))
 
 
-def atomic_save(obj: dict, path: Path) -> None:
-    """Write to a temporary file of this process, then rename it over ``path``: an interruption (even
-    kill -9) leaves the previous file whole, and two processes never share a temporary file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    kept = f"the previous {path.name} is kept" if path.exists() else f"no {path.name} was written"
-    try:
-        with open(tmp, "wb") as f:
-            torch.save(obj, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except KeyboardInterrupt:  # a second Ctrl-C: stop at once
-        raise KeyboardInterrupt(f"while saving {path}; {kept}") from None
-    except (OSError, RuntimeError) as err:  # torch reports a full disk as "unexpected pos"
-        full = getattr(err, "errno", None) == errno.ENOSPC or "unexpected pos" in str(err)
-        cause = "no space left on the device" if full else " ".join(str(err).split())[:200]
-        raise UsageError(f"cannot save {path} ({cause}); {kept}") from err
-    finally:
-        tmp.unlink(missing_ok=True)
+class AttrVAE(nn.Module):
+    """Appendix Tables VAE_attr (only the encoder's mean is used here)."""
 
-
-def read_checkpoint(path: Path, remake: str) -> dict:
-    """``torch.load``, or a message that names the file and the command that makes it again."""
-    if path.suffix == ".pt2":
-        raise UsageError(
-            f"{path} is a policy exported by dreamer_baseline.py (torch.export), not a checkpoint: give the "
-            f"agent checkpoint beside it, {path.with_name(path.name.removesuffix('.policy.pt2') + '.pt')}"
+    def __init__(self, attr: int, latent: int, hidden: int, depth: int):
+        super().__init__()
+        enc, cin = [], attr
+        for _ in range(depth):
+            enc += [nn.Linear(cin, hidden), nn.ReLU()]
+            cin = hidden
+        self.encoder = nn.Sequential(
+            *enc, nn.Linear(hidden, latent), nn.ReLU(), nn.Linear(latent, 2 * latent)
         )
+        dec, cin = [], latent
+        for _ in range(depth):
+            dec += [nn.Linear(cin, hidden), nn.ReLU()]
+            cin = hidden
+        self.decoder = nn.Sequential(*dec, nn.Linear(hidden, attr))
+
+    def encode_mean(self, a: torch.Tensor) -> torch.Tensor:
+        return self.encoder(a).chunk(2, dim=-1)[0]
+
+
+class GlobalWorkspace(nn.Module):
+    """Encoders e_v, e_attr and decoders d_v, d_attr (appendix Tables GW_SS / GW_Rob)."""
+
+    def __init__(self, latent: int, z: int, hidden: int):
+        super().__init__()
+        self.e = nn.ModuleDict({"v": mlp(latent, hidden, z, 4), "attr": mlp(latent, hidden, z, 4)})
+        self.d = nn.ModuleDict({"v": mlp(z, hidden, latent, 4), "attr": mlp(z, hidden, latent, 4)})
+
+    def fuse(self, u_v, u_attr, alpha_v: float, alpha_attr: float) -> torch.Tensor:
+        """z = tanh(alpha_v e_v(u_v) + alpha_attr e_attr(u_attr)) (eq. of Figure 1)."""
+        return torch.tanh(alpha_v * self.e["v"](u_v) + alpha_attr * self.e["attr"](u_attr))
+
+
+class FrozenEncoder(nn.Module):
+    """Observation -> z_t through the frozen VAE means and the frozen GW (Algorithm 1, line 7)."""
+
+    def __init__(self, env: str, vae: dict, gw: dict):
+        """``vae`` and ``gw``: checkpoints of pretrain_vae_gw.py (see ``load_encoder``)."""
+        super().__init__()
+        s = ENV_SPECS[env]
+        self.vae_v = VisualVAE(s["image"], s["latent"], vae["config"]["vae_width"])
+        depth, hidden = (2, 64) if env == "simple_shapes" else (4, 512)
+        self.vae_attr = AttrVAE(s["attr"], s["latent"], hidden, depth)
+        self.gw = GlobalWorkspace(s["latent"], s["z"], s["gw_hidden"])
+        self.vae_v.load_state_dict(vae["vae_v"])
+        self.vae_attr.load_state_dict(vae["vae_attr"])
+        self.gw.load_state_dict(gw["gw"])
+        self.register_buffer("attr_mean", torch.as_tensor(vae["attr_mean"], dtype=torch.float32))
+        self.register_buffer("attr_std", torch.as_tensor(vae["attr_std"], dtype=torch.float32))
+        self.preset = gw.get("preset", "gw")  # "gw" or "clip": GW-Dreamer or CLIP-Dreamer
+        # RoboDesk tasks whose expert data the GW was trained on (the others are zero-shot for it).
+        labels = gw.get("data", {}).get("samples_per_source_and_task", {})
+        self.expert_tasks = sorted(k.split("/", 1)[1] for k in labels if k.startswith("expert/"))
+        # RoboDesk: the image quality of the GW's training data (agents must see the same images).
+        self.render_quality = gw.get("args", {}).get("render_quality", "faithful")
+        self.z_dim = s["z"]
+        self.eval().requires_grad_(False)
+
+    @torch.no_grad()
+    def forward(self, obs: dict[str, np.ndarray], alpha_v: float = 0.5, alpha_attr: float = 0.5):
+        dev = self.attr_mean.device
+        # A removed modality contributes nothing: its fusion weight is 0 and its input is not read.
+        absent = torch.zeros(len(obs["attr"]), self.gw.e["v"][0].in_features, device=dev)
+        u_v = u_attr = absent
+        if alpha_v > 0:
+            image = torch.as_tensor(obs["image"], device=dev).permute(0, 3, 1, 2).float() / 255.0
+            u_v = self.vae_v.encode_mean(image)
+        if alpha_attr > 0:
+            attr = torch.as_tensor(obs["attr"], device=dev, dtype=torch.float32)
+            u_attr = self.vae_attr.encode_mean((attr - self.attr_mean) / self.attr_std)
+        return self.gw.fuse(u_v, u_attr, alpha_v, alpha_attr)
+
+    @torch.no_grad()
+    def decode_image(self, z: torch.Tensor) -> torch.Tensor:
+        """Image broadcast from z: d_v then the visual VAE decoder (the dream frames)."""
+        return self.vae_v.decode(self.gw.d["v"](z))
+
+
+def load_encoder(
+    env: str, vae_path: Path, gw_path: Path, checkpoint_dir: str = "checkpoints", task: str = "push_green"
+) -> FrozenEncoder:
+    """The frozen encoder from the checkpoints of pretrain_vae_gw.py, checked against ``env``."""
+    vae = load_pretrained(vae_path, "vae", env, "collect vae gw", checkpoint_dir, task)  # the GW needs it too
+    clip = " --loss-preset clip" if gw_path.name == "clip.pt" else ""  # CLIP-Dreamer's contrastive model
+    gw = load_pretrained(gw_path, "gw", env, "gw", checkpoint_dir, task, clip)
+    check_gw_vae_pair(vae, gw, vae_path, gw_path, checkpoint_dir)
     try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as err:  # a truncated zip, a text file, a pickle of something else: many types
-        brief = " ".join(str(err).split())[:200]  # one line
+        return FrozenEncoder(env, vae, gw)
+    except RuntimeError as err:  # a state dict of other sizes
+        raise UsageError(f"{vae_path} / {gw_path} do not fit the {env} networks: {err}") from err
+
+
+def vae_digest(vae: dict) -> str:
+    """Identity of a VAE checkpoint's weights: SHA-256 of its tensors with floating ones rounded to
+    float16, the precision of the bundled copies, so that a bundled VAE keeps the digest of its source."""
+    h = hashlib.sha256()
+    for part in ("vae_v", "vae_attr"):
+        for key, t in sorted(vae[part].items()):
+            t = t.detach().cpu()
+            h.update(key.encode() + (t.half() if torch.is_floating_point(t) else t).numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
+def check_gw_vae_pair(vae: dict, gw: dict, vae_path: Path, gw_path: Path, checkpoint_dir: str) -> None:
+    """A GW reads the latents of the VAE it was trained on (pretrain_vae_gw.py records that VAE's digest);
+    with any other VAE its z means nothing, so a mismatch stops the run."""
+    if gw.get("vae_digest", vae_digest(vae)) != vae_digest(vae):
+        made = gw.get("args", {})  # the GW's own flags: its scale and the data it read
+        extra = " --cpu-preset" if made.get("cpu_preset") else ""
+        extra += f" --data-dir {made['data_dir']}" if made.get("data_dir", "data") != "data" else ""
+        extra += f" --loss-preset {gw.get('preset', 'gw')} --overwrite"
+        extra += "" if checkpoint_dir == "checkpoints" else f" --checkpoint-dir {checkpoint_dir}"
+        remake = f"python pretrain_vae_gw.py --env {gw['env']} --stages gw{extra}"
         raise UsageError(
-            f"cannot read {path} ({type(err).__name__}: {brief}); the file is damaged or is no checkpoint: "
-            f"make it again with `{remake}`"
-        ) from err
-    if not isinstance(ckpt, dict) or "kind" not in ckpt and "identity" not in ckpt:
-        raise UsageError(
-            f"{path} holds a {type(ckpt).__name__} of torch.save, not a checkpoint of these scripts: "
-            f"make one with `{remake}`"
-        )
-    return ckpt
-
-
-def ensure_writable(folder: Path) -> None:
-    """Create ``folder`` and write a file in it now, rather than fail at the first save."""
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        probe = folder / f".write_test.{os.getpid()}"
-        probe.write_bytes(b"")
-        probe.unlink()
-    except OSError as err:
-        raise UsageError(f"cannot write to {folder}: {err.strerror or err}") from err
-
-
-def claim_outputs(paths: list[Path], resume: bool, overwrite: bool, kind: str) -> None:
-    """A new run stops before it would overwrite an earlier run's checkpoint or mix its TensorBoard
-    events with that run's; --overwrite removes them on purpose, --resume continues the run they hold.
-    A run that is still training holds a lock (``take_lock``), so no second process writes the same run."""
-    take_lock(paths[0].with_name(f".{paths[0].name}.lock"))
-    existing = [p for p in paths if p.exists()]
-    if existing and not paths[0].exists() and not overwrite:  # the run stopped before its first save
-        raise UsageError(
-            f"{' and '.join(map(str, existing))} exist, but no checkpoint {paths[0]}: that run stopped "
-            "before its first save and cannot be continued; add --overwrite (without --resume) to start again"
-        )
-    if resume and not paths[0].exists():
-        raise UsageError(f"--resume: there is no checkpoint {paths[0]} to continue; start the run without it")
-    if paths[0].is_file() and not overwrite:  # the same --exp-name given to another script
-        try:
-            other = read_checkpoint(paths[0], "").get("kind")
-        except UsageError:  # a damaged file: --resume names it
-            other = kind
-        if other != kind:
-            raise UsageError(
-                f"{paths[0]} holds a {other!r} run, not a {kind!r} one (the same run name in another "
-                "script?): choose another --exp-name or --checkpoint"
-            )
-    if resume or not existing:
-        return
-    if not overwrite:
-        raise UsageError(
-            f"{' and '.join(map(str, existing))} already exist from an earlier run: add --resume to continue "
-            "it, change --exp-name or --seed to start a separate one, or add --overwrite to replace it"
-        )
-    for p in existing:
-        shutil.rmtree(p) if p.is_dir() else p.unlink()
-
-
-def take_lock(lock: Path) -> None:
-    """Hold ``lock`` (a file with this process's id) until the process exits. A lock whose process is
-    alive stops this run; one left by a process that died without cleaning up (kill -9) is taken over."""
-    ensure_writable(lock.parent)
-    while True:
-        try:
-            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-            break
-        except FileExistsError:
-            text = lock.read_text().strip() if lock.is_file() else ""
-            pid = int(text) if text.isdigit() else 0
-            if pid == os.getpid():
-                return
-            try:
-                os.kill(pid, 0) if pid > 0 else None
-                alive = pid > 0
-            except ProcessLookupError:
-                alive = False
-            except PermissionError:  # another user's live process
-                alive = True
-            if alive:
-                raise UsageError(
-                    f"process {pid} is training this run now (lock {lock}): wait for it to end, or stop it "
-                    "(Ctrl-C saves) and continue with --resume"
-                ) from None
-            lock.unlink(missing_ok=True)  # stale: its process is gone
-    os.write(fd, str(os.getpid()).encode())
-    os.close(fd)
-    atexit.register(lambda: lock.unlink(missing_ok=True))
-
-
-def check_unrecorded(path: Path, saved: dict, args, may_change) -> None:
-    """A checkpoint made before a flag existed does not record it, and what that run did in its place is
-    unknown; it continues only at the flag's default (the tables' value for the run's recorded settings)."""
-    now = vars(args)
-    made = type(args)(**{k: v for k, v in saved.items() if k in now})  # the run, new flags at default
-    default = vars(made.resolve() if hasattr(made, "resolve") else made)
-    odd = [k for k in now if k not in saved and k not in may_change and now[k] != default[k]]
-    if odd:
-        flags = " ".join(f"--{k.replace('_', '-')} {now[k]}" for k in odd)
-        raise UsageError(
-            f"{path} was made by an older version that does not record {flags}, so that run continues only "
-            "at their defaults: leave them out"
+            f"{gw_path} was trained on the latents of another VAE than {vae_path} (the VAE was remade "
+            f"after it): retrain the GW on this VAE with `{remake}`"
         )
 
 
-def check_device(device: str) -> None:
-    """--device names a device this torch has (a CPU-only build has no cuda)."""
-    try:
-        torch.empty(1, device=device)
-    except (RuntimeError, AssertionError) as err:
-        brief = " ".join(str(err).split())[:120]
-        raise UsageError(f"--device {device}: this torch cannot use it ({brief}); use --device cpu") from err
-
-
-def non_finite(tree, where: str = "") -> str:
-    """The key path of the first floating-point tensor or array in ``tree`` that holds a NaN or an
-    infinity ('' if none): a checkpoint written from such a state is no good to continue."""
-    if isinstance(tree, dict):
-        return next((bad for k, v in tree.items() if (bad := non_finite(v, f"{where}/{k}".strip("/")))), "")
-    if isinstance(tree, torch.Tensor) and tree.is_floating_point() and not torch.isfinite(tree).all():
-        return where
-    if isinstance(tree, np.ndarray) and tree.dtype.kind == "f" and not np.isfinite(tree).all():
-        return where
-    return ""
-
-
-def setting_changes(saved: dict, now: dict, keys) -> list[str]:
-    """``--flag value`` of each setting in ``keys`` whose saved value differs from this command's."""
-    out = []
-    for k in (k for k in keys if k in saved and saved[k] != now[k]):
-        value = " ".join(map(str, saved[k])) if isinstance(saved[k], (list, tuple)) else saved[k]
-        out.append(f"--{k.replace('_', '-')} {value}")
-    return out
-
-
-def last_good(path: Path) -> str:
-    """Where a run stopped by a non-finite value stands: its last save (written only from finite
-    weights), or none yet."""
-    if path.is_file():
-        return f"the last good checkpoint is {path}"
-    return f"no checkpoint was saved before it ({path} does not exist yet)"
-
-
-class StopRequest:
-    """Ctrl-C (SIGINT) or SIGTERM asks the run to finish what it is doing, save and exit with code 130,
-    so an interrupted run loses nothing and ``--resume`` continues it (a save made in the middle of an
-    update would pair half-stepped optimisers). A second signal stops at once."""
-
-    def __init__(self, tag: str):
-        self.tag, self.requested, self.previous = tag, False, {}
-        if threading.current_thread() is threading.main_thread():  # signal handlers live there only
-            self.previous = {s: signal.signal(s, self.handle) for s in (signal.SIGINT, signal.SIGTERM)}
-
-    def handle(self, signum, frame) -> None:
-        if self.requested:
-            raise KeyboardInterrupt
-        self.requested = True
-        name = signal.Signals(signum).name
-        print(f"[{self.tag}] {name}: saving after this step (send it again to stop at once)", flush=True)
-
-    def restore(self) -> None:
-        for s, handler in self.previous.items():
-            signal.signal(s, handler)
-        self.previous = {}
-
-    def __enter__(self) -> StopRequest:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.restore()
-
-
-def cli(main, args_type) -> None:
-    """Run ``main`` on the parsed command line; a UsageError is printed as one line (exit code 2), and
-    Ctrl-C outside the places that save prints one line too (exit code 130)."""
-    try:
-        main(tyro.cli(args_type))
-    except UsageError as err:
-        print(f"error: {err}", file=sys.stderr, flush=True)
-        raise SystemExit(2) from None
-    except KeyboardInterrupt as err:
-        print(f"interrupted {err}".strip(), flush=True)
-        raise SystemExit(130) from None
+FUSION = {"none": (0.5, 0.5), "vision": (0.0, 1.0), "attr": (1.0, 0.0)}  # (alpha_v, alpha_attr)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -1357,8 +1157,12 @@ MAY_CHANGE = set(
     " save_minutes torch_threads resume overwrite checkpoint checkpoint_dir gw_checkpoint vae_checkpoint"
     " exp_name eval_only drop compile".split()
 )
+
+
 # Settings an evaluation must share with the agent it loads (they shape its networks or inputs).
 EVAL_KEYS = ("task", "reward_loss", "cpu_preset")
+
+
 # Settings of agents trained by benchmarks/experiments/gw_dreamer_experiments.py (or by this script
 # before they moved there), at the values that make them this script's model.
 EXPERIMENT_KEYS = {"ac_input": "h", "heads_read_sg_z": False, "zero_init": False, "z_source": "gw"}
@@ -1645,29 +1449,6 @@ def save(run: Run) -> None:
     )
 
 
-def log_episode(run: Run, ret: float, success: float) -> None:
-    """A finished training episode: its return, the smoothed normalised return and the criterion."""
-    s, a, step = run.state, run.args, run.state.env_steps
-    s.episodes += 1
-    run.writer.add_scalar("charts/episodic_return", ret, step)
-    if a.env == "robodesk":
-        run.writer.add_scalar("charts/success_count", success, step)
-    if not run.ref:
-        return
-    s.recent = (s.recent + [run.normalise(ret)])[-a.smoothing :]
-    smooth = float(np.mean(s.recent))
-    run.writer.add_scalar("charts/normalised_return", run.normalise(ret), step)
-    run.writer.add_scalar("charts/smoothed_normalised_return", smooth, step)
-    if s.criterion_step is None and len(s.recent) == a.smoothing and smooth >= a.criterion:
-        s.criterion_step = step
-        run.writer.add_scalar("charts/criterion_step", step, step)
-        minutes = (time.time() - run.t0) / 60
-        print(
-            f"[{TAG}] return criterion ({a.criterion}) reached at env step {step:,}, "
-            f"{minutes:.1f} min into this run"
-        )
-
-
 def bookkeeping(run: Run, logs: dict) -> None:
     """What is due at this env step: scalars and a progress line, an evaluation, a dream video, a save."""
     a, s, w = run.args, run.state, run.writer
@@ -1758,13 +1539,321 @@ def evaluate_checkpoint(agent: Agent, encoder: FrozenEncoder, args: Args, path: 
     return out
 
 
-def random_actions(rng: np.random.Generator, n: int, action_dim: int, discrete: bool, dev) -> torch.Tensor:
-    """The uniformly random policy that fills the replay buffer before learning starts."""
-    if discrete:
-        a = F.one_hot(torch.as_tensor(rng.integers(0, action_dim, n)), action_dim)
-    else:
-        a = torch.as_tensor(rng.uniform(-1, 1, (n, action_dim)))
-    return a.float().to(dev)
+# ==== run infrastructure: the same in every agent script (tests/test_shared_code.py) ====
+# --------------------------------------------------------------------------------------------------
+# Pre-trained VAEs and GW (the same block in every agent script): where they are read from, and what to
+# run when they are missing. A Simple Shapes VAE + GW made by `pretrain_vae_gw.py --env simple_shapes
+# --cpu-preset` ships in envs/pretrained/ so the main job runs on a fresh clone; checkpoints of your own
+# under --checkpoint-dir always win.
+BUNDLED = Path(__file__).resolve().parent / "envs" / "pretrained"
+ROBODESK_TASKS = "push_green open_slide open_drawer upright_block_off_table flat_block_in_bin"
+
+
+# The RoboDesk pipeline, at the CPU scale of docs/environments.md (times measured on a 2-core CPU) or at
+# the paper's scale (times of docs/pretrain_vae_gw.md: one CPU core collecting, one H100 training).
+ROBODESK_PIPELINE = """the RoboDesk agents read the frozen VAEs and GW of pretrain_vae_gw.py; make them first.
+  CPU scale (one GW for five tasks, fast images; docs/pretrain_vae_gw.md):
+    python pretrain_vae_gw.py --env robodesk --cpu-preset{cd}   # about 70 min on 2 cores
+    then this command with --cpu-preset
+  paper scale (GPU): python pretrain_vae_gw.py --env robodesk --task {task}{cd}
+    (2M samples: 11 h of collection on one core with --render-quality fast, 190 h faithful; then
+    the visual VAE 30 h, the attribute VAE 35 min and the GW 1.5 h on one H100)"""
+
+
+def pretrained_paths(checkpoint_dir: str, env: str, wanted: dict[str, str | None]) -> dict[str, Path]:
+    """{file name: path} for the pre-trained checkpoints a run needs: the flag's path when given, else
+    <checkpoint_dir>/<env>/<name>, else, when that folder holds none of them, the bundled copies."""
+    folder = Path(checkpoint_dir) / env
+    paths = {name: Path(given) if given else folder / name for name, given in wanted.items()}
+    defaults = [name for name, given in wanted.items() if not given]
+    if (
+        defaults
+        and not any((folder / name).is_file() for name in defaults)
+        and all((BUNDLED / env / name).is_file() for name in defaults)
+    ):
+        paths |= {name: BUNDLED / env / name for name in defaults}
+        print(
+            f"[pretrained] {folder} holds no {' / '.join(defaults)}: using the bundled copies in "
+            f"envs/pretrained/{env}/ (made by `python pretrain_vae_gw.py --env {env} --cpu-preset`)"
+        )
+    return paths
+
+
+def pretrain_command(env: str, checkpoint_dir: str, stages: str, extra: str = "") -> str:
+    """The pretrain_vae_gw.py command that makes a missing checkpoint, with the user's --checkpoint-dir."""
+    preset = " --cpu-preset" if env == "simple_shapes" else ""  # the scale that runs on a CPU
+    cd = "" if checkpoint_dir == "checkpoints" else f" --checkpoint-dir {checkpoint_dir}"
+    return f"python pretrain_vae_gw.py --env {env} --stages {stages}{preset}{extra}{cd}"
+
+
+def load_pretrained(
+    path: Path,
+    kind: str,
+    env: str,
+    stages: str,
+    checkpoint_dir: str = "checkpoints",
+    task: str = "push_green",
+    extra: str = "",
+) -> dict:
+    """A checkpoint of pretrain_vae_gw.py, checked against ``kind`` and ``env``; when it is missing, the
+    error gives the command that makes it (on RoboDesk, the whole pipeline)."""
+    make = pretrain_command(env, checkpoint_dir, stages, extra)
+    if not path.is_file():
+        if env == "robodesk":
+            cd = "" if checkpoint_dir == "checkpoints" else f" --checkpoint-dir {checkpoint_dir}"
+            raise UsageError(
+                f"no {kind} checkpoint at {path}: "
+                + ROBODESK_PIPELINE.format(tasks=ROBODESK_TASKS, task=task, cd=cd)
+            )
+        raise UsageError(f"no {kind} checkpoint at {path}; make it with `{make}`")
+    ckpt = read_checkpoint(path, make)
+    if ckpt.get("kind") != kind:
+        raise UsageError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected {kind!r}")
+    if ckpt.get("env") != env:
+        raise UsageError(
+            f"{path} was made for env {ckpt.get('env')!r}, but this run is for env {env!r}; "
+            f"make a matching one with `{make}`"
+        )
+    return ckpt
+
+
+# --------------------------------------------------------------------------------------------------
+# Safe runs: a new run never overwrites an earlier one, a resumed run is the same run, checkpoints are
+# written atomically, and bad settings or unreadable files stop the run at once with one line
+# --------------------------------------------------------------------------------------------------
+class UsageError(ValueError):
+    """A mistake in the command line or in the files it names: the CLI prints the message and exits 2."""
+
+
+def require(ok: bool, flag: str, value, rule: str) -> None:
+    if not ok:
+        raise UsageError(f"--{flag.replace('_', '-')} {value}: {rule}")
+
+
+def atomic_save(obj: dict, path: Path) -> None:
+    """Write to a temporary file of this process, then rename it over ``path``: an interruption (even
+    kill -9) leaves the previous file whole, and two processes never share a temporary file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    kept = f"the previous {path.name} is kept" if path.exists() else f"no {path.name} was written"
+    try:
+        with open(tmp, "wb") as f:
+            torch.save(obj, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except KeyboardInterrupt:  # a second Ctrl-C: stop at once
+        raise KeyboardInterrupt(f"while saving {path}; {kept}") from None
+    except (OSError, RuntimeError) as err:  # torch reports a full disk as "unexpected pos"
+        full = getattr(err, "errno", None) == errno.ENOSPC or "unexpected pos" in str(err)
+        cause = "no space left on the device" if full else " ".join(str(err).split())[:200]
+        raise UsageError(f"cannot save {path} ({cause}); {kept}") from err
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def read_checkpoint(path: Path, remake: str) -> dict:
+    """``torch.load``, or a message that names the file and the command that makes it again."""
+    if path.suffix == ".pt2":
+        raise UsageError(
+            f"{path} is a policy exported by dreamer_baseline.py (torch.export), not a checkpoint: give the "
+            f"agent checkpoint beside it, {path.with_name(path.name.removesuffix('.policy.pt2') + '.pt')}"
+        )
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as err:  # a truncated zip, a text file, a pickle of something else: many types
+        brief = " ".join(str(err).split())[:200]  # one line
+        raise UsageError(
+            f"cannot read {path} ({type(err).__name__}: {brief}); the file is damaged or is no checkpoint: "
+            f"make it again with `{remake}`"
+        ) from err
+    if not isinstance(ckpt, dict) or "kind" not in ckpt and "identity" not in ckpt:
+        raise UsageError(
+            f"{path} holds a {type(ckpt).__name__} of torch.save, not a checkpoint of these scripts: "
+            f"make one with `{remake}`"
+        )
+    return ckpt
+
+
+def ensure_writable(folder: Path) -> None:
+    """Create ``folder`` and write a file in it now, rather than fail at the first save."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        probe = folder / f".write_test.{os.getpid()}"
+        probe.write_bytes(b"")
+        probe.unlink()
+    except OSError as err:
+        raise UsageError(f"cannot write to {folder}: {err.strerror or err}") from err
+
+
+def claim_outputs(paths: list[Path], resume: bool, overwrite: bool, kind: str) -> None:
+    """A new run stops before it would overwrite an earlier run's checkpoint or mix its TensorBoard
+    events with that run's; --overwrite removes them on purpose, --resume continues the run they hold.
+    A run that is still training holds a lock (``take_lock``), so no second process writes the same run."""
+    take_lock(paths[0].with_name(f".{paths[0].name}.lock"))
+    existing = [p for p in paths if p.exists()]
+    if existing and not paths[0].exists() and not overwrite:  # the run stopped before its first save
+        raise UsageError(
+            f"{' and '.join(map(str, existing))} exist, but no checkpoint {paths[0]}: that run stopped "
+            "before its first save and cannot be continued; add --overwrite (without --resume) to start again"
+        )
+    if resume and not paths[0].exists():
+        raise UsageError(f"--resume: there is no checkpoint {paths[0]} to continue; start the run without it")
+    if paths[0].is_file() and not overwrite:  # the same --exp-name given to another script
+        try:
+            other = read_checkpoint(paths[0], "").get("kind")
+        except UsageError:  # a damaged file: --resume names it
+            other = kind
+        if other != kind:
+            raise UsageError(
+                f"{paths[0]} holds a {other!r} run, not a {kind!r} one (the same run name in another "
+                "script?): choose another --exp-name or --checkpoint"
+            )
+    if resume or not existing:
+        return
+    if not overwrite:
+        raise UsageError(
+            f"{' and '.join(map(str, existing))} already exist from an earlier run: add --resume to continue "
+            "it, change --exp-name or --seed to start a separate one, or add --overwrite to replace it"
+        )
+    for p in existing:
+        shutil.rmtree(p) if p.is_dir() else p.unlink()
+
+
+def take_lock(lock: Path) -> None:
+    """Hold ``lock`` (a file with this process's id) until the process exits. A lock whose process is
+    alive stops this run; one left by a process that died without cleaning up (kill -9) is taken over."""
+    ensure_writable(lock.parent)
+    while True:
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            break
+        except FileExistsError:
+            text = lock.read_text().strip() if lock.is_file() else ""
+            pid = int(text) if text.isdigit() else 0
+            if pid == os.getpid():
+                return
+            try:
+                os.kill(pid, 0) if pid > 0 else None
+                alive = pid > 0
+            except ProcessLookupError:
+                alive = False
+            except PermissionError:  # another user's live process
+                alive = True
+            if alive:
+                raise UsageError(
+                    f"process {pid} is training this run now (lock {lock}): wait for it to end, or stop it "
+                    "(Ctrl-C saves) and continue with --resume"
+                ) from None
+            lock.unlink(missing_ok=True)  # stale: its process is gone
+    os.write(fd, str(os.getpid()).encode())
+    os.close(fd)
+    atexit.register(lambda: lock.unlink(missing_ok=True))
+
+
+def check_unrecorded(path: Path, saved: dict, args, may_change) -> None:
+    """A checkpoint made before a flag existed does not record it, and what that run did in its place is
+    unknown; it continues only at the flag's default (the tables' value for the run's recorded settings)."""
+    now = vars(args)
+    made = type(args)(**{k: v for k, v in saved.items() if k in now})  # the run, new flags at default
+    default = vars(made.resolve() if hasattr(made, "resolve") else made)
+    odd = [k for k in now if k not in saved and k not in may_change and now[k] != default[k]]
+    if odd:
+        flags = " ".join(f"--{k.replace('_', '-')} {now[k]}" for k in odd)
+        raise UsageError(
+            f"{path} was made by an older version that does not record {flags}, so that run continues only "
+            "at their defaults: leave them out"
+        )
+
+
+def check_device(device: str) -> None:
+    """--device names a device this torch has (a CPU-only build has no cuda)."""
+    try:
+        torch.empty(1, device=device)
+    except (RuntimeError, AssertionError) as err:
+        brief = " ".join(str(err).split())[:120]
+        raise UsageError(f"--device {device}: this torch cannot use it ({brief}); use --device cpu") from err
+
+
+def non_finite(tree, where: str = "") -> str:
+    """The key path of the first floating-point tensor or array in ``tree`` that holds a NaN or an
+    infinity ('' if none): a checkpoint written from such a state is no good to continue."""
+    if isinstance(tree, dict):
+        return next((bad for k, v in tree.items() if (bad := non_finite(v, f"{where}/{k}".strip("/")))), "")
+    if isinstance(tree, torch.Tensor) and tree.is_floating_point() and not torch.isfinite(tree).all():
+        return where
+    if isinstance(tree, np.ndarray) and tree.dtype.kind == "f" and not np.isfinite(tree).all():
+        return where
+    return ""
+
+
+def setting_changes(saved: dict, now: dict, keys) -> list[str]:
+    """``--flag value`` of each setting in ``keys`` whose saved value differs from this command's."""
+    out = []
+    for k in (k for k in keys if k in saved and saved[k] != now[k]):
+        value = " ".join(map(str, saved[k])) if isinstance(saved[k], (list, tuple)) else saved[k]
+        out.append(f"--{k.replace('_', '-')} {value}")
+    return out
+
+
+def last_good(path: Path) -> str:
+    """Where a run stopped by a non-finite value stands: its last save (written only from finite
+    weights), or none yet."""
+    if path.is_file():
+        return f"the last good checkpoint is {path}"
+    return f"no checkpoint was saved before it ({path} does not exist yet)"
+
+
+class StopRequest:
+    """Ctrl-C (SIGINT) or SIGTERM asks the run to finish what it is doing, save and exit with code 130,
+    so an interrupted run loses nothing and ``--resume`` continues it (a save made in the middle of an
+    update would pair half-stepped optimisers). A second signal stops at once."""
+
+    def __init__(self, tag: str):
+        self.tag, self.requested, self.previous = tag, False, {}
+        if threading.current_thread() is threading.main_thread():  # signal handlers live there only
+            self.previous = {s: signal.signal(s, self.handle) for s in (signal.SIGINT, signal.SIGTERM)}
+
+    def handle(self, signum, frame) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        name = signal.Signals(signum).name
+        print(f"[{self.tag}] {name}: saving after this step (send it again to stop at once)", flush=True)
+
+    def restore(self) -> None:
+        for s, handler in self.previous.items():
+            signal.signal(s, handler)
+        self.previous = {}
+
+    def __enter__(self) -> StopRequest:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.restore()
+
+
+def log_episode(run: Run, ret: float, success: float) -> None:
+    """A finished training episode: its return, the smoothed normalised return and the criterion."""
+    s, a, step = run.state, run.args, run.state.env_steps
+    s.episodes += 1
+    run.writer.add_scalar("charts/episodic_return", ret, step)
+    if a.env == "robodesk":
+        run.writer.add_scalar("charts/success_count", success, step)
+    if not run.ref:
+        return
+    s.recent = (s.recent + [run.normalise(ret)])[-a.smoothing :]
+    smooth = float(np.mean(s.recent))
+    run.writer.add_scalar("charts/normalised_return", run.normalise(ret), step)
+    run.writer.add_scalar("charts/smoothed_normalised_return", smooth, step)
+    if s.criterion_step is None and len(s.recent) == a.smoothing and smooth >= a.criterion:
+        s.criterion_step = step
+        run.writer.add_scalar("charts/criterion_step", step, step)
+        minutes = (time.time() - run.t0) / 60
+        print(
+            f"[{TAG}] return criterion ({a.criterion}) reached at env step {step:,}, "
+            f"{minutes:.1f} min into this run"
+        )
 
 
 def interrupted(run: Run) -> None:
@@ -1779,91 +1868,17 @@ def interrupted(run: Run) -> None:
     raise SystemExit(130)  # the shell's code for a run ended by Ctrl-C
 
 
-# --------------------------------------------------------------------------------------------------
-# Algorithm 1
-# --------------------------------------------------------------------------------------------------
-def main(args: Args) -> dict:
-    args = args.resolve()
-    check_settings(args)
-    if args.torch_threads:
-        torch.set_num_threads(args.torch_threads)
-    dev = torch.device(args.device)
-    encoder, paths = load_frozen(args, dev)  # Require: the pre-trained (frozen) GW
-    random.seed(args.seed)
-    np.random.seed(args.seed)
-    torch.manual_seed(args.seed)
-    agent = Agent(args.env, encoder.z_dim, args.reward_loss, args.return_norm_decay, args.cpu_preset).to(dev)
-    model = "gw" if encoder.preset == "gw" else "clip"
-    default = Path(args.checkpoint_dir) / args.env / "agents" / f"{run_name(args, model)}.pt"
-    agent_path = Path(args.checkpoint) if args.checkpoint else default
-    if args.eval_only:
-        return evaluate_checkpoint(agent, encoder, args, agent_path)
-    # Initialize the world model, the actor-critic and the replay buffer (or continue a saved run).
-    run = start_run(args, encoder, agent, paths, agent_path)
-    state, replay, n_envs, repeat = run.state, run.replay, args.num_envs, ACTION_REPEAT[args.env]
-    losses = compiled_losses(dev) if args.compile else EAGER
-    action_dim = SIZES[args.env]["actions"]
-
-    envs_ = make_envs(args, n_envs)
-    obs, _ = envs_.reset(seed=args.seed + state.env_steps)
-    h = torch.zeros(n_envs, agent.wm.hidden, device=dev)
-    first = np.ones(n_envs, np.float32)
-    ep_ret, ep_succ = np.zeros(n_envs), np.zeros(n_envs)
-    rng = np.random.default_rng(args.seed + state.env_steps)
-    logs = {}
-    stop = StopRequest(TAG)
-    while state.env_steps < args.total_steps:
-        if args.stop_at_criterion and state.criterion_step is not None:
-            break
-        # Collect transitions (o_t, a_t, o_{t+1}, r_{t+1}, d_{t+1}) with the current policy into the
-        # replay buffer, as z_t = GW(o_t) (uniformly random actions before learning starts).
-        with torch.no_grad():
-            z = encoder(obs)
-            if state.env_steps < args.learning_starts:
-                a = random_actions(rng, n_envs, action_dim, agent.discrete, dev)
-            else:
-                a = agent.actor.act(agent.features(h, z))
-            h = agent.wm.step(h, z, a)
-        obs, r, term, trunc, info = envs_.step(action_for_env(a, agent.discrete))
-        replay.add(np.arange(n_envs), z.cpu().numpy(), a.cpu().numpy(), r, term, first, np.zeros(n_envs))
-        first = np.zeros(n_envs, np.float32)
-        ep_ret += r
-        ep_succ += step_success(info, n_envs)
-        state.env_steps += n_envs * repeat  # the paper's unit: simulator frames on RoboDesk
-        done = term | trunc
-        if done.any():  # the episode's final observation closes its stream (an entry marked last)
-            ends = np.flatnonzero(done)
-            z_final = encoder(final_observations(info, ends)).cpu().numpy()
-            zeros, no_action = np.zeros(len(ends)), np.zeros((len(ends), action_dim))
-            replay.add(ends, z_final, no_action, zeros, zeros, zeros, np.ones(len(ends)))
-            for i in ends:
-                log_episode(run, float(ep_ret[i]), float(ep_succ[i]))
-            ep_ret[ends], ep_succ[ends], first[ends] = 0.0, 0.0, 1.0
-            h[torch.as_tensor(ends, device=dev)] = 0.0
-
-        # Training steps: the updates owed by the train ratio, each the world model then the
-        # actor-critic in dreams (train_update), once the buffer holds a full batch sequence.
-        while state.updates < updates_due(state.env_steps, args) and replay.ready(args.batch_length):
-            try:
-                if state.flops_per_update == 0:  # same shapes every update: count the first one
-                    logs, state.flops_per_update = count_flops(
-                        lambda: train_update(agent, run.opts, replay, args, state.env_steps)
-                    )
-                else:
-                    logs = train_update(agent, run.opts, replay, args, state.env_steps, losses)
-            except FloatingPointError as err:
-                raise FloatingPointError(f"{err}; {last_good(run.agent_path)}") from err
-            state.updates += 1
-            state.flops += state.flops_per_update
-
-        bookkeeping(run, logs)
-        if stop.requested:
-            envs_.close()
-            stop.restore()
-            interrupted(run)
-    stop.restore()
-    envs_.close()
-    return finish(run)
+def cli(main, args_type) -> None:
+    """Run ``main`` on the parsed command line; a UsageError is printed as one line (exit code 2), and
+    Ctrl-C outside the places that save prints one line too (exit code 130)."""
+    try:
+        main(tyro.cli(args_type))
+    except UsageError as err:
+        print(f"error: {err}", file=sys.stderr, flush=True)
+        raise SystemExit(2) from None
+    except KeyboardInterrupt as err:
+        print(f"interrupted {err}".strip(), flush=True)
+        raise SystemExit(130) from None
 
 
 if __name__ == "__main__":

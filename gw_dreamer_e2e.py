@@ -248,9 +248,13 @@ TABLE = {
         gw_weight_decay=1e-6,
     ),
 }
+
+
 # A smaller GW batch for a 2-core CPU: the contrastive loss compares every pair of a batch, so a GW
 # update costs ~15x more at 2,048 than at 256 (the paper gives no batch for the end-to-end GW).
 CPU_PRESET = {"gw_batch_size": 256}
+
+
 # RoboDesk under --cpu-preset: gw_dreamer.py's CPU batch (and its CPU_SIZES networks).
 # An evaluation's 10 episodes are 20,000 frames of acting, so the preset evaluates every 100,000.
 CPU_TABLE = {"robodesk": dict(total_steps=200_000, batch_size=16, batch_length=64, eval_every=100_000)}
@@ -275,6 +279,8 @@ SIZES = {
         "actions": 5,
     },
 }
+
+
 # --cpu-preset: the same networks, a quarter as wide (the GRU state h_t of 256 instead of 1024).
 CPU_SIZES = {
     "robodesk": {
@@ -293,73 +299,10 @@ def sizes_of(env: str, cpu_preset: bool = False) -> dict:
     return CPU_SIZES[env] if cpu_preset and env in CPU_SIZES else SIZES[env]
 
 
-ACTION_REPEAT = {"simple_shapes": 1, "robodesk": 4}
 ENV_SPECS = {  # must agree with pretrain_vae_gw.py (checked against the checkpoints)
     "simple_shapes": {"image": 32, "attr": 11, "latent": 10, "z": 10, "gw_hidden": 64},
     "robodesk": {"image": 64, "attr": 76, "latent": 40, "z": 76, "gw_hidden": 512},
 }
-
-
-# --------------------------------------------------------------------------------------------------
-# Frozen VAEs of pretrain_vae_gw.py (same layers, so the same weights load) and the trainable GW
-# --------------------------------------------------------------------------------------------------
-def conv_block(cin: int, cout: int, transpose: bool = False, stride: int = 2) -> nn.Sequential:
-    conv = (nn.ConvTranspose2d if transpose else nn.Conv2d)(
-        cin, cout, 4 if stride == 2 else 3, stride, 1, bias=False
-    )
-    return nn.Sequential(conv, nn.BatchNorm2d(cout), nn.ReLU())
-
-
-class VisualVAE(nn.Module):
-    """Appendix Tables VAE_v: conv encoder to the mean/log-variance of u_v, decoder back to an image."""
-
-    def __init__(self, image: int, latent: int, width: int = 1024):
-        super().__init__()
-        n_down = int(np.log2(image)) - 1
-        chans = [width // 2 ** (n_down - 1 - i) for i in range(n_down)]
-        layers, cin = [], 3
-        for c in chans:
-            layers.append(conv_block(cin, c))
-            cin = c
-        self.encoder = nn.Sequential(*layers, nn.Flatten())
-        self.q = nn.Linear(width * 4, 2 * latent)
-        n_up = int(np.log2(image // 8))
-        up = [width // 2 ** (i + 1) for i in range(n_up)] + [width // 2**n_up]
-        self.width = width
-        self.fc = nn.Linear(latent, 8 * 8 * width)
-        dec, cin = [], width
-        for i, c in enumerate(up):
-            dec.append(conv_block(cin, c, transpose=True, stride=2 if i < n_up else 1))
-            cin = c
-        self.decoder = nn.Sequential(*dec, nn.Conv2d(cin, 3, 3, 1, 1), nn.Sigmoid())
-
-    def encode_mean(self, x: torch.Tensor) -> torch.Tensor:
-        return self.q(self.encoder(x)).chunk(2, dim=-1)[0]
-
-    def decode(self, u: torch.Tensor) -> torch.Tensor:
-        return self.decoder(self.fc(u).view(-1, self.width, 8, 8))
-
-
-class AttrVAE(nn.Module):
-    """Appendix Tables VAE_attr (only the encoder's mean is used here)."""
-
-    def __init__(self, attr: int, latent: int, hidden: int, depth: int):
-        super().__init__()
-        enc, cin = [], attr
-        for _ in range(depth):
-            enc += [nn.Linear(cin, hidden), nn.ReLU()]
-            cin = hidden
-        self.encoder = nn.Sequential(
-            *enc, nn.Linear(hidden, latent), nn.ReLU(), nn.Linear(latent, 2 * latent)
-        )
-        dec, cin = [], latent
-        for _ in range(depth):
-            dec += [nn.Linear(cin, hidden), nn.ReLU()]
-            cin = hidden
-        self.decoder = nn.Sequential(*dec, nn.Linear(hidden, attr))
-
-    def encode_mean(self, a: torch.Tensor) -> torch.Tensor:
-        return self.encoder(a).chunk(2, dim=-1)[0]
 
 
 def mlp(cin: int, hidden: int, cout: int, depth: int) -> nn.Sequential:
@@ -368,21 +311,6 @@ def mlp(cin: int, hidden: int, cout: int, depth: int) -> nn.Sequential:
         layers += [nn.Linear(cin, hidden), nn.ReLU()]
         cin = hidden
     return nn.Sequential(*layers, nn.Linear(hidden, cout))
-
-
-class GlobalWorkspace(nn.Module):
-    """Encoders e_v, e_attr and decoders d_v, d_attr (appendix Tables GW_SS / GW_Rob), here from random
-    weights and trained during the run (Algorithm 2)."""
-
-    def __init__(self, latent: int, z: int, hidden: int):
-        super().__init__()
-        self.e = nn.ModuleDict({"v": mlp(latent, hidden, z, 4), "attr": mlp(latent, hidden, z, 4)})
-        self.d = nn.ModuleDict({"v": mlp(z, hidden, latent, 4), "attr": mlp(z, hidden, latent, 4)})
-
-    def fuse(self, u_v, u_attr, alpha_v, alpha_attr) -> torch.Tensor:
-        """z = tanh(alpha_v e_v(u_v) + alpha_attr e_attr(u_attr)) (eq. of Figure 1); alphas are scalars or
-        per-sample (B, 1)."""
-        return torch.tanh(alpha_v * self.e["v"](u_v) + alpha_attr * self.e["attr"](u_attr))
 
 
 LOSS_PRESETS = {  # appendix Table "GW losses weights"
@@ -429,52 +357,6 @@ def gw_lr(update: int, args: Args) -> float:
     else:
         lo, hi, frac = args.gw_lr_max, args.gw_lr_end, (update - warm) / (args.gw_cycle - warm)
     return hi + (lo - hi) * (1 + math.cos(math.pi * frac)) / 2
-
-
-class FrozenVAEs(nn.Module):
-    """Observation -> frozen VAE means (u_v, u_attr) (Algorithm 2, "Encode the different observations
-    using the pre-trained VAEs"), and u_v -> image for the dream frames."""
-
-    def __init__(self, env: str, vae: dict):
-        """``vae``: the checkpoint of pretrain_vae_gw.py's vae stage (see ``load_vaes``)."""
-        super().__init__()
-        s = ENV_SPECS[env]
-        self.vae_v = VisualVAE(s["image"], s["latent"], vae["config"]["vae_width"])
-        depth, hidden = (2, 64) if env == "simple_shapes" else (4, 512)
-        self.vae_attr = AttrVAE(s["attr"], s["latent"], hidden, depth)
-        self.vae_v.load_state_dict(vae["vae_v"])
-        self.vae_attr.load_state_dict(vae["vae_attr"])
-        self.register_buffer("attr_mean", torch.as_tensor(vae["attr_mean"], dtype=torch.float32))
-        self.register_buffer("attr_std", torch.as_tensor(vae["attr_std"], dtype=torch.float32))
-        self.latent = s["latent"]
-        self.eval().requires_grad_(False)
-
-    @torch.no_grad()
-    def forward(self, obs: dict[str, np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]:
-        dev = self.attr_mean.device
-        image = torch.as_tensor(obs["image"], device=dev).permute(0, 3, 1, 2).float() / 255.0
-        attr = torch.as_tensor(obs["attr"], device=dev, dtype=torch.float32)
-        return self.vae_v.encode_mean(image), self.vae_attr.encode_mean(
-            (attr - self.attr_mean) / self.attr_std
-        )
-
-    @torch.no_grad()
-    def decode_image(self, u_v: torch.Tensor) -> torch.Tensor:
-        return self.vae_v.decode(u_v)
-
-
-def load_vaes(
-    env: str, vae_path: Path, checkpoint_dir: str = "checkpoints", task: str = "push_green"
-) -> FrozenVAEs:
-    """The frozen VAEs from pretrain_vae_gw.py's checkpoint, checked against ``env``."""
-    vae = load_pretrained(vae_path, "vae", env, "collect vae", checkpoint_dir, task)
-    try:
-        return FrozenVAEs(env, vae)
-    except RuntimeError as err:  # a state dict of other sizes
-        raise UsageError(f"{vae_path} does not fit the {env} networks: {err}") from err
-
-
-FUSION = {"none": (0.5, 0.5), "vision": (0.0, 1.0), "attr": (1.0, 0.0)}  # (alpha_v, alpha_attr)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -1021,6 +903,102 @@ def count_flops(fn):
 
 
 # --------------------------------------------------------------------------------------------------
+# Algorithm 2
+# --------------------------------------------------------------------------------------------------
+def main(args: Args) -> dict:
+    args = args.resolve()
+    check_settings(args)
+    if args.torch_threads:
+        torch.set_num_threads(args.torch_threads)
+    dev = torch.device(args.device)
+    vaes, paths = load_frozen(args, dev)  # Require: the pre-trained unimodal models (VAEs)
+    random.seed(args.seed)
+    np.random.seed(args.seed)
+    torch.manual_seed(args.seed)
+    agent = Agent(args.env, args.reward_loss, args.return_norm_decay, args.cpu_preset).to(dev)
+    model = "gw" if args.loss_preset == "gw" else "clip"
+    default = Path(args.checkpoint_dir) / args.env / "agents" / f"{run_name(args, model)}.pt"
+    agent_path = Path(args.checkpoint) if args.checkpoint else default
+    if args.eval_only:
+        return evaluate_checkpoint(agent, vaes, args, agent_path)
+    # Initialize the GW, the world model, the actor-critic and the replay buffer (or continue a run).
+    run = start_run(args, vaes, agent, paths, agent_path)
+    state, replay, n_envs, repeat = run.state, run.replay, args.num_envs, ACTION_REPEAT[args.env]
+    losses = compiled_losses(dev) if args.compile else EAGER
+    action_dim = SIZES[args.env]["actions"]
+
+    envs_ = make_envs(args, n_envs)
+    obs, _ = envs_.reset(seed=args.seed + state.env_steps)
+    h = torch.zeros(n_envs, agent.wm.hidden, device=dev)
+    first = np.ones(n_envs, np.float32)
+    ep_ret, ep_succ = np.zeros(n_envs), np.zeros(n_envs)
+    rng = np.random.default_rng(args.seed + state.env_steps)
+    logs = {}
+    stop = StopRequest(TAG)
+    while state.env_steps < args.total_steps:
+        if args.stop_at_criterion and state.criterion_step is not None:
+            break
+        # Collect transitions (o_t, a_t, o_{t+1}, r_{t+1}, d_{t+1}) with the current policy into the
+        # replay buffer as frozen VAE means (u_v, u_attr) (uniformly random actions before learning
+        # starts); the policy reads z_t of the GW as it is now.
+        with torch.no_grad():
+            u_v, u_attr = vaes(obs)
+            z = agent.z(u_v, u_attr)
+            if state.env_steps < args.learning_starts:
+                a = random_actions(rng, n_envs, action_dim, agent.discrete, dev)
+            else:
+                a = agent.actor.act(agent.features(h, z))
+            h = agent.wm.step(h, z, a)
+        obs, r, term, trunc, info = envs_.step(action_for_env(a, agent.discrete))
+        u = (u_v.cpu().numpy(), u_attr.cpu().numpy())
+        replay.add(np.arange(n_envs), *u, a.cpu().numpy(), r, term, first, np.zeros(n_envs))
+        first = np.zeros(n_envs, np.float32)
+        ep_ret += r
+        ep_succ += step_success(info, n_envs)
+        state.env_steps += n_envs * repeat  # the paper's unit: simulator frames on RoboDesk
+        done = term | trunc
+        if done.any():  # the episode's final observation closes its stream (an entry marked last)
+            ends = np.flatnonzero(done)
+            u_final = (u.cpu().numpy() for u in vaes(final_observations(info, ends)))
+            zeros, no_action = np.zeros(len(ends)), np.zeros((len(ends), action_dim))
+            replay.add(ends, *u_final, no_action, zeros, zeros, zeros, np.ones(len(ends)))
+            for i in ends:
+                log_episode(run, float(ep_ret[i]), float(ep_succ[i]))
+            ep_ret[ends], ep_succ[ends], first[ends] = 0.0, 0.0, 1.0
+            h[torch.as_tensor(ends, device=dev)] = 0.0
+
+        # Training steps: the updates owed by the train ratio, each two GW updates, the world model
+        # and the actor-critic in dreams (train_update), once the buffer holds a full batch sequence.
+        while state.updates < updates_due(state.env_steps, args) and replay.ready(args.batch_length):
+            try:
+                if state.flops_per_update == 0:  # same shapes every update: count the first one
+                    logs, state.flops_per_update = count_flops(
+                        lambda: train_update(agent, run.opts, replay, args, state.gw_updates, state.env_steps)
+                    )
+                else:
+                    logs = train_update(
+                        agent, run.opts, replay, args, state.gw_updates, state.env_steps, losses
+                    )
+            except FloatingPointError as err:
+                raise FloatingPointError(f"{err}; {last_good(run.agent_path)}") from err
+            state.updates += 1
+            state.gw_updates += args.gw_updates
+            state.flops += state.flops_per_update
+
+        bookkeeping(run, logs)
+        if stop.requested:
+            envs_.close()
+            stop.restore()
+            interrupted(run)
+    stop.restore()
+    envs_.close()
+    return finish(run)
+
+
+ACTION_REPEAT = {"simple_shapes": 1, "robodesk": 4}
+
+
+# --------------------------------------------------------------------------------------------------
 # Environments and evaluation
 # --------------------------------------------------------------------------------------------------
 def make_envs(args: Args, num_envs: int):
@@ -1120,6 +1098,488 @@ def dream_filmstrip(agent: Agent, vaes: FrozenVAEs, args: Args, steps: int, seed
     return np.concatenate([np.concatenate(real, 1), np.concatenate(dream_img, 1)], 0)
 
 
+def random_actions(rng: np.random.Generator, n: int, action_dim: int, discrete: bool, dev) -> torch.Tensor:
+    """The uniformly random policy that fills the replay buffer before learning starts."""
+    if discrete:
+        a = F.one_hot(torch.as_tensor(rng.integers(0, action_dim, n)), action_dim)
+    else:
+        a = torch.as_tensor(rng.uniform(-1, 1, (n, action_dim)))
+    return a.float().to(dev)
+
+
+# --------------------------------------------------------------------------------------------------
+# Frozen VAEs of pretrain_vae_gw.py (same layers, so the same weights load) and the trainable GW
+# --------------------------------------------------------------------------------------------------
+def conv_block(cin: int, cout: int, transpose: bool = False, stride: int = 2) -> nn.Sequential:
+    conv = (nn.ConvTranspose2d if transpose else nn.Conv2d)(
+        cin, cout, 4 if stride == 2 else 3, stride, 1, bias=False
+    )
+    return nn.Sequential(conv, nn.BatchNorm2d(cout), nn.ReLU())
+
+
+class VisualVAE(nn.Module):
+    """Appendix Tables VAE_v: conv encoder to the mean/log-variance of u_v, decoder back to an image."""
+
+    def __init__(self, image: int, latent: int, width: int = 1024):
+        super().__init__()
+        n_down = int(np.log2(image)) - 1
+        chans = [width // 2 ** (n_down - 1 - i) for i in range(n_down)]
+        layers, cin = [], 3
+        for c in chans:
+            layers.append(conv_block(cin, c))
+            cin = c
+        self.encoder = nn.Sequential(*layers, nn.Flatten())
+        self.q = nn.Linear(width * 4, 2 * latent)
+        n_up = int(np.log2(image // 8))
+        up = [width // 2 ** (i + 1) for i in range(n_up)] + [width // 2**n_up]
+        self.width = width
+        self.fc = nn.Linear(latent, 8 * 8 * width)
+        dec, cin = [], width
+        for i, c in enumerate(up):
+            dec.append(conv_block(cin, c, transpose=True, stride=2 if i < n_up else 1))
+            cin = c
+        self.decoder = nn.Sequential(*dec, nn.Conv2d(cin, 3, 3, 1, 1), nn.Sigmoid())
+
+    def encode_mean(self, x: torch.Tensor) -> torch.Tensor:
+        return self.q(self.encoder(x)).chunk(2, dim=-1)[0]
+
+    def decode(self, u: torch.Tensor) -> torch.Tensor:
+        return self.decoder(self.fc(u).view(-1, self.width, 8, 8))
+
+
+class AttrVAE(nn.Module):
+    """Appendix Tables VAE_attr (only the encoder's mean is used here)."""
+
+    def __init__(self, attr: int, latent: int, hidden: int, depth: int):
+        super().__init__()
+        enc, cin = [], attr
+        for _ in range(depth):
+            enc += [nn.Linear(cin, hidden), nn.ReLU()]
+            cin = hidden
+        self.encoder = nn.Sequential(
+            *enc, nn.Linear(hidden, latent), nn.ReLU(), nn.Linear(latent, 2 * latent)
+        )
+        dec, cin = [], latent
+        for _ in range(depth):
+            dec += [nn.Linear(cin, hidden), nn.ReLU()]
+            cin = hidden
+        self.decoder = nn.Sequential(*dec, nn.Linear(hidden, attr))
+
+    def encode_mean(self, a: torch.Tensor) -> torch.Tensor:
+        return self.encoder(a).chunk(2, dim=-1)[0]
+
+
+class GlobalWorkspace(nn.Module):
+    """Encoders e_v, e_attr and decoders d_v, d_attr (appendix Tables GW_SS / GW_Rob), here from random
+    weights and trained during the run (Algorithm 2)."""
+
+    def __init__(self, latent: int, z: int, hidden: int):
+        super().__init__()
+        self.e = nn.ModuleDict({"v": mlp(latent, hidden, z, 4), "attr": mlp(latent, hidden, z, 4)})
+        self.d = nn.ModuleDict({"v": mlp(z, hidden, latent, 4), "attr": mlp(z, hidden, latent, 4)})
+
+    def fuse(self, u_v, u_attr, alpha_v, alpha_attr) -> torch.Tensor:
+        """z = tanh(alpha_v e_v(u_v) + alpha_attr e_attr(u_attr)) (eq. of Figure 1); alphas are scalars or
+        per-sample (B, 1)."""
+        return torch.tanh(alpha_v * self.e["v"](u_v) + alpha_attr * self.e["attr"](u_attr))
+
+
+class FrozenVAEs(nn.Module):
+    """Observation -> frozen VAE means (u_v, u_attr) (Algorithm 2, "Encode the different observations
+    using the pre-trained VAEs"), and u_v -> image for the dream frames."""
+
+    def __init__(self, env: str, vae: dict):
+        """``vae``: the checkpoint of pretrain_vae_gw.py's vae stage (see ``load_vaes``)."""
+        super().__init__()
+        s = ENV_SPECS[env]
+        self.vae_v = VisualVAE(s["image"], s["latent"], vae["config"]["vae_width"])
+        depth, hidden = (2, 64) if env == "simple_shapes" else (4, 512)
+        self.vae_attr = AttrVAE(s["attr"], s["latent"], hidden, depth)
+        self.vae_v.load_state_dict(vae["vae_v"])
+        self.vae_attr.load_state_dict(vae["vae_attr"])
+        self.register_buffer("attr_mean", torch.as_tensor(vae["attr_mean"], dtype=torch.float32))
+        self.register_buffer("attr_std", torch.as_tensor(vae["attr_std"], dtype=torch.float32))
+        self.latent = s["latent"]
+        self.eval().requires_grad_(False)
+
+    @torch.no_grad()
+    def forward(self, obs: dict[str, np.ndarray]) -> tuple[torch.Tensor, torch.Tensor]:
+        dev = self.attr_mean.device
+        image = torch.as_tensor(obs["image"], device=dev).permute(0, 3, 1, 2).float() / 255.0
+        attr = torch.as_tensor(obs["attr"], device=dev, dtype=torch.float32)
+        return self.vae_v.encode_mean(image), self.vae_attr.encode_mean(
+            (attr - self.attr_mean) / self.attr_std
+        )
+
+    @torch.no_grad()
+    def decode_image(self, u_v: torch.Tensor) -> torch.Tensor:
+        return self.vae_v.decode(u_v)
+
+
+def load_vaes(
+    env: str, vae_path: Path, checkpoint_dir: str = "checkpoints", task: str = "push_green"
+) -> FrozenVAEs:
+    """The frozen VAEs from pretrain_vae_gw.py's checkpoint, checked against ``env``."""
+    vae = load_pretrained(vae_path, "vae", env, "collect vae", checkpoint_dir, task)
+    try:
+        return FrozenVAEs(env, vae)
+    except RuntimeError as err:  # a state dict of other sizes
+        raise UsageError(f"{vae_path} does not fit the {env} networks: {err}") from err
+
+
+FUSION = {"none": (0.5, 0.5), "vision": (0.0, 1.0), "attr": (1.0, 0.0)}  # (alpha_v, alpha_attr)
+
+
+# --------------------------------------------------------------------------------------------------
+# Checkpoints and settings
+# --------------------------------------------------------------------------------------------------
+def vae_fingerprint(vaes: FrozenVAEs) -> float:
+    """A number that changes with the frozen weights: a resumed or evaluated agent must use the VAEs it
+    was trained on (its GW is part of the agent checkpoint)."""
+    return float(sum(p.double().sum() for p in vaes.parameters()))
+
+
+# Settings that may differ between the parts of one run (how long it runs, how it reports, where its files
+# are); every other setting defines the run, and --resume refuses a change to any of them.
+MAY_CHANGE = set(
+    "total_steps stop_at_criterion eval_every eval_episodes log_every save_every video_every device"
+    " torch_threads resume overwrite checkpoint checkpoint_dir vae_checkpoint exp_name"
+    " eval_only drop compile".split()
+)
+
+
+# Settings an evaluation must share with the agent it loads (they shape its networks or inputs).
+EVAL_KEYS = ("task", "reward_loss", "loss_preset")
+
+
+def load_agent_checkpoint(path: Path, args: Args, fingerprint: float) -> dict:
+    """The agent checkpoint at ``path``, checked against this command: same env and task, the frozen
+    VAEs it was trained on, and (``--resume``) every setting that defines the run. A checkpoint of the
+    previous layout (return scale in the loop state) is converted on reading."""
+    train = f"python gw_dreamer_e2e.py --env {args.env}"
+    if not path.is_file():
+        raise UsageError(f"no agent checkpoint at {path}; train one with `{train}`")
+    ckpt = read_checkpoint(path, train)
+    if ckpt.get("kind") != "gw_dreamer_e2e":
+        raise UsageError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected a gw_dreamer_e2e agent")
+    bad = non_finite({k: ckpt[k] for k in ("agent", "replay") if k in ckpt})
+    if bad:
+        raise UsageError(
+            f"{path} holds non-finite values ({bad}): it is no state to continue or evaluate; go back to a "
+            "copy saved earlier or train again"
+        )
+    if ckpt.get("env") != args.env:
+        raise UsageError(f"{path} is an agent for env {ckpt.get('env')!r}, but --env is {args.env!r}")
+    if abs(ckpt["vae_fingerprint"] - fingerprint) > 1e-6 * max(1.0, abs(fingerprint)):
+        raise UsageError(f"{path} was trained on other VAE weights ({ckpt['vae_checkpoint']})")
+    saved, now = ckpt["args"], asdict(args)
+    if args.env == "simple_shapes":
+        now["task"] = saved.get("task", now["task"])  # Simple Shapes has no task
+    # On RoboDesk --cpu-preset sets the network sizes; on Simple Shapes only the GW's batch.
+    changed = setting_changes(saved, now, EVAL_KEYS + (("cpu_preset",) if args.env == "robodesk" else ()))
+    if changed:
+        raise UsageError(f"{path} was trained with {' '.join(changed)}; pass {' '.join(changed)}")
+    changed = setting_changes(saved, now, [k for k in now if k not in MAY_CHANGE]) if args.resume else []
+    if changed:
+        raise UsageError(
+            f"{path} was made with {' '.join(changed)}, which differ from this command: give the same "
+            "settings to continue that run, or start a separate one (another --exp-name or --seed)"
+        )
+    if args.resume:
+        check_unrecorded(path, saved, args, MAY_CHANGE)
+    if "return_scale.ema" not in ckpt["agent"]:  # the return scale was a float of the loop state
+        state = ckpt["state"]
+        ckpt["agent"]["return_scale.ema"] = torch.tensor(
+            [state.pop("return_scale", 0.0)], dtype=torch.float64
+        )
+        ckpt["agent"]["return_scale.count"] = torch.tensor([float(state["updates"])], dtype=torch.float64)
+    return ckpt
+
+
+def check_settings(args: Args) -> None:
+    """Every numeric flag in range, and flags that only make sense together, before anything runs."""
+    for flag, value in vars(args).items():  # inf and nan would pass every range check below
+        if isinstance(value, float):
+            require(math.isfinite(value), flag, value, "must be a finite number")
+    check_device(args.device)
+    at_least_1 = "total_steps num_envs batch_size batch_length imag_horizon eval_every eval_episodes"
+    at_least_1 += " log_every save_every smoothing"
+    for flag in at_least_1.split():
+        require(getattr(args, flag) >= 1, flag, getattr(args, flag), "must be at least 1")
+    nonnegative = (
+        "learning_starts video_every entropy_coef wm_z_coef wm_reward_coef wm_done_coef actor_mean_reg"
+    )
+    for flag in nonnegative.split():
+        require(getattr(args, flag) >= 0, flag, getattr(args, flag), "must not be negative")
+    require(args.gw_updates >= 0, "gw_updates", args.gw_updates, "must not be negative")
+    require(
+        args.gw_batch_size >= 2, "gw_batch_size", args.gw_batch_size, "must be at least 2 (it pairs samples)"
+    )
+    positive = "train_ratio wm_lr ac_lr gw_cycle gw_lr_start gw_lr_max gw_lr_end fusion_temperature"
+    for flag in (positive + " contrastive_temperature").split():
+        require(getattr(args, flag) > 0, flag, getattr(args, flag), "must be positive")
+    require(args.gw_weight_decay >= 0, "gw_weight_decay", args.gw_weight_decay, "must not be negative")
+    require(0 < args.gamma <= 1, "gamma", args.gamma, "must be in (0, 1]")
+    for flag in ("lam", "slow_critic_decay", "return_norm_decay"):
+        require(0 <= getattr(args, flag) <= 1, flag, getattr(args, flag), "must be in [0, 1]")
+    need = (args.batch_length + 1) * args.num_envs
+    rule = f"must hold a replayed sequence (--batch-length + 1 entries) per environment: at least {need}"
+    require(args.buffer_size >= need, "buffer_size", args.buffer_size, rule)
+    rule = f"must be at least one agent step ({ACTION_REPEAT['robodesk']} frames)"
+    require(args.episode_length >= ACTION_REPEAT["robodesk"], "episode_length", args.episode_length, rule)
+    require(args.drop == "none" or args.eval_only, "drop", args.drop, "is for evaluation: add --eval-only")
+    rule = f"must be below --total-steps {args.total_steps:,}, or the run would make no update"
+    ok = args.eval_only or args.learning_starts < args.total_steps
+    require(ok, "learning_starts", args.learning_starts, rule)
+    for other in ("overwrite", "eval_only"):
+        if args.resume and getattr(args, other):
+            raise UsageError(f"--resume continues a run; it cannot go with --{other.replace('_', '-')}")
+    if args.env == "robodesk":
+        from envs.robodesk import TASKS
+
+        if args.task not in TASKS:
+            raise UsageError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
+
+
+def schedule(args: Args) -> str:
+    """One line that says how this run reads the paper's training schedule (printed at start)."""
+    repeat = ACTION_REPEAT[args.env]
+    starts = args.batch_size * (1 if args.imag_from == "last" else args.batch_length)
+    unit = "agent steps" if repeat == 1 else f"simulator frames ({repeat} per agent step)"
+    last = args.imag_from == "last"
+    where = "the newest state of each replayed sequence" if last else "every replayed state"
+    return (
+        f"schedule: one update per {args.train_ratio:g} agent steps (train ratio) after "
+        f"{args.learning_starts:,} random steps; world model on {args.batch_size} x {args.batch_length} "
+        f"replayed steps; {starts:,} dreams of {args.imag_horizon} steps from {where} (--imag-from "
+        f"{args.imag_from}); actor gradient {actor_grad(args)}; {args.total_steps:,} env steps, counted "
+        f"in {unit}"
+    )
+
+
+def actor_grad(args: Args) -> str:
+    """The actor's gradient estimator: --actor-grad, or by the action space (auto, as DreamerV3)."""
+    if args.actor_grad != "auto":
+        return args.actor_grad
+    return "reinforce" if args.env == "simple_shapes" else "dynamics"
+
+
+# --------------------------------------------------------------------------------------------------
+# The run: what the training loop carries, and the bookkeeping around Algorithm 2
+# --------------------------------------------------------------------------------------------------
+@dataclass
+class LoopState:
+    """Counters of the training loop (saved in the agent checkpoint, restored by --resume)."""
+
+    env_steps: int = 0  # in the paper's unit (RoboDesk: simulator frames)
+    updates: int = 0
+    gw_updates: int = 0  # the GW's own updates (its OneCycle schedule counts them)
+    flops: int = 0  # forward + backward FLOPs of every update so far (the paper's "RL training FLOPs")
+    flops_per_update: int = 0  # counted on the first update; every update has the same shapes
+    episodes: int = 0
+    criterion_step: int | None = None
+    recent: list = field(default_factory=list)  # the last --smoothing normalised training returns
+    next_eval: int = 0
+    next_save: int = 0
+    next_video: int = 0
+
+
+@dataclass
+class Run:
+    """One training run: its settings, networks, data, counters and outputs."""
+
+    args: Args
+    frozen: FrozenVAEs  # the frozen VAEs
+    agent: Agent
+    opts: dict
+    replay: Replay
+    state: LoopState
+    writer: SummaryWriter
+    agent_path: Path
+    pretrained: dict  # {"vae.pt": path}
+    model: str  # "gw" (GW-Dreamer end to end) or "clip" (its CLIP-like variant)
+    ref: tuple | None  # Simple Shapes returns of the random and the greedy policy (normalisation)
+    t0: float = field(default_factory=time.time)
+    steps0: int = 0
+
+    def normalise(self, ret: float) -> float:
+        return (ret - self.ref[0]) / (self.ref[1] - self.ref[0]) if self.ref else float("nan")
+
+
+def load_frozen(args: Args, dev) -> tuple[FrozenVAEs, dict]:
+    """The frozen VAEs this run reads (yours under --checkpoint-dir, else the bundled ones)."""
+    paths = pretrained_paths(args.checkpoint_dir, args.env, {"vae.pt": args.vae_checkpoint})
+    return load_vaes(args.env, paths["vae.pt"], args.checkpoint_dir, args.task).to(dev), paths
+
+
+def run_name(args: Args, model: str) -> str:
+    task = "" if args.env == "simple_shapes" else f"_{args.task}"
+    return f"{args.exp_name}_{model}_{args.env}{task}_s{args.seed}"
+
+
+def start_run(args: Args, vaes: FrozenVAEs, agent: Agent, paths: dict, agent_path: Path) -> Run:
+    """Claim the outputs, build optimizers and replay, resume when asked, and print what runs."""
+    model = "gw" if args.loss_preset == "gw" else "clip"
+    runs_dir = Path("runs") / run_name(args, model)
+    # Nothing of an earlier run is overwritten by accident, and the output folders take files now.
+    claim_outputs([agent_path, runs_dir], args.resume, args.overwrite, "gw_dreamer_e2e")
+    ensure_writable(agent_path.parent)
+    ensure_writable(runs_dir)
+    opts = make_optimizers(agent, args)
+    replay = Replay(args.buffer_size, args.num_envs, vaes.latent, SIZES[args.env]["actions"], args.seed)
+    state = LoopState(
+        next_eval=args.eval_every, next_save=args.save_every, next_video=args.video_every or args.total_steps
+    )
+    if args.resume:
+        ck = load_agent_checkpoint(agent_path, args, vae_fingerprint(vaes))
+        agent.load_state_dict(ck["agent"])
+        for name, opt in opts.items():
+            opt.load_state_dict(ck["opts"][name])
+        replay.load_state_dict(ck["replay"])
+        replay.close_episodes()  # the saved run stopped mid-episode
+        state = LoopState(**ck["state"])
+        torch.set_rng_state(ck["torch_rng"])
+        np.random.set_state(ck["np_rng"])
+        print(f"[{TAG}] resuming {agent_path} at env step {state.env_steps:,}")
+    writer = SummaryWriter(str(runs_dir))
+    if not args.resume:
+        table = "\n".join(f"|{k}|{v}|" for k, v in vars(args).items())
+        writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + table)
+    ref = ss_reference_returns() if args.env == "simple_shapes" else None
+    run = Run(args, vaes, agent, opts, replay, state, writer, agent_path, paths, model, ref)
+    run.steps0 = state.env_steps
+    n = {k: sum(p.numel() for p in getattr(agent, k).parameters()) for k in ("gw", "wm", "actor", "critic")}
+    frozen = sum(p.numel() for p in vaes.parameters())
+    task = "" if args.env == "simple_shapes" else f"_{args.task}"
+    print(
+        f"[{TAG}] {model.upper()}-Dreamer end to end on {args.env}{task}: GW {n['gw']:,}, "
+        f"world model {n['wm']:,}, actor {n['actor']:,}, critic {n['critic']:,} parameters "
+        f"(+ {frozen:,} frozen VAE)"
+    )
+    print(f"[{TAG}] {schedule(args)}")
+    if ref:
+        print(f"[{TAG}] normalised return: random policy {ref[0]:.1f} -> 0, greedy policy {ref[1]:.1f} -> 1")
+    return run
+
+
+def save(run: Run) -> None:
+    """The resumable agent checkpoint: networks, optimizers, replay, counters and random states."""
+    a = run.args
+    if a.compile and not all(torch.isfinite(p).all() for p in run.agent.parameters()):
+        step = run.state.env_steps
+        raise FloatingPointError(f"non-finite weights at env step {step:,}; {last_good(run.agent_path)}")
+    atomic_save(
+        {
+            "kind": "gw_dreamer_e2e",
+            "env": a.env,
+            "task": a.task,
+            "model": run.model,
+            "args": asdict(a),
+            "vae_checkpoint": str(run.pretrained["vae.pt"]),
+            "vae_fingerprint": vae_fingerprint(run.frozen),
+            "agent": run.agent.state_dict(),
+            "opts": {name: opt.state_dict() for name, opt in run.opts.items()},
+            "replay": run.replay.state_dict(),
+            "state": asdict(run.state),
+            "torch_rng": torch.get_rng_state(),
+            "np_rng": np.random.get_state(),
+        },
+        run.agent_path,
+    )
+
+
+def bookkeeping(run: Run, logs: dict) -> None:
+    """What is due at this env step: scalars and a progress line, an evaluation, a dream video, a save."""
+    a, s, w = run.args, run.state, run.writer
+    step, repeat = s.env_steps, ACTION_REPEAT[a.env]
+    if step % a.log_every < a.num_envs * repeat and logs:
+        logs = {k: float(v) for k, v in logs.items()}  # the one host sync per log interval
+        if not all(map(math.isfinite, logs.values())):  # --compile checks here, not in the update
+            raise FloatingPointError(f"non-finite losses by env step {step:,}; {last_good(run.agent_path)}")
+        sps = (step - run.steps0) / max(time.time() - run.t0, 1e-9)
+        for k, v in logs.items():
+            w.add_scalar(f"charts/{k}" if k == "gw_lr" else f"losses/{k}", v, step)
+        w.add_scalar("charts/SPS", sps, step)
+        w.add_scalar("charts/updates", s.updates, step)
+        w.add_scalar("charts/agent_steps", step // repeat, step)
+        w.add_scalar("charts/train_flops", s.flops, step)
+        smooth = np.mean(s.recent) if s.recent else float("nan")
+        eta = (a.total_steps - step) / max(sps, 1e-9) / 60
+        print(
+            f"[{TAG}] step {step:,}/{a.total_steps:,} updates {s.updates:,} {sps:.1f} steps/s "
+            f"ETA {eta:.1f} min | wm {logs['loss_wm']:.3f} (z {logs['loss_z']:.3f} r {logs['loss_r']:.3f} "
+            f"d {logs['loss_d']:.3f}) gw {logs.get('loss_gw', math.nan):.3f} "
+            f"smoothed normalised return {smooth:.3f}",
+            flush=True,
+        )
+    if step >= s.next_eval:
+        s.next_eval += a.eval_every
+        rets, succ = run_episodes(run.agent, run.frozen, a, a.eval_episodes, "none", seed=10**6 + step)
+        w.add_scalar("eval/episodic_return", rets.mean(), step)
+        if run.ref:
+            w.add_scalar("eval/normalised_return", run.normalise(float(rets.mean())), step)
+        if a.env == "robodesk":
+            w.add_scalar("eval/success_count", succ.mean(), step)
+    if step >= s.next_video:
+        s.next_video += a.video_every or a.total_steps
+        strip = dream_filmstrip(run.agent, run.frozen, a, 16, seed=10**6)
+        w.add_image("dreams/real_top_imagined_bottom", strip, step, dataformats="HWC")
+    if step >= s.next_save:
+        s.next_save += a.save_every
+        save(run)
+
+
+def finish(run: Run) -> dict:
+    """Save the trained agent, then a final evaluation and dream video; the run's figures."""
+    a, s = run.args, run.state
+    save(run)  # before the final evaluation, so Ctrl-C there loses nothing
+    try:
+        rets, succ = run_episodes(run.agent, run.frozen, a, a.eval_episodes, "none", seed=10**6 + 1)
+        strip = dream_filmstrip(run.agent, run.frozen, a, 16, seed=10**6)
+    except KeyboardInterrupt:
+        run.writer.close()
+        print(f"[{TAG}] interrupted in the final evaluation; the agent is saved at {run.agent_path}")
+        raise SystemExit(130) from None
+    run.writer.add_image("dreams/real_top_imagined_bottom", strip, s.env_steps, dataformats="HWC")
+    run.writer.close()
+    result = {
+        "env_steps": s.env_steps,
+        "agent_steps": s.env_steps // ACTION_REPEAT[a.env],
+        "updates": s.updates,
+        "train_flops": s.flops,
+        "criterion_step": s.criterion_step,
+        "final_return": float(rets.mean()),
+        "wall_s": time.time() - run.t0,
+    }
+    if run.ref:
+        result["final_normalised_return"] = run.normalise(float(rets.mean()))
+    if a.env == "robodesk":
+        result["final_success_count"] = float(succ.mean())
+    print(f"[{TAG}] done: {result}; agent checkpoint {run.agent_path}")
+    return result
+
+
+def evaluate_checkpoint(agent: Agent, vaes: FrozenVAEs, args: Args, path: Path) -> dict:
+    """--eval-only: the modality ablation of a trained agent (paper section "Modality Ablation
+    Robustness"): --eval-episodes fresh episodes with --drop removed."""
+    agent.load_state_dict(load_agent_checkpoint(path, args, vae_fingerprint(vaes))["agent"])
+    rets, succ = run_episodes(agent, vaes, args, args.eval_episodes, args.drop, seed=args.seed + 10**6)
+    sem = rets.std(ddof=1) / math.sqrt(len(rets)) if len(rets) > 1 else 0.0
+    out = {"drop": args.drop, "return_mean": float(rets.mean()), "return_sem": float(sem)}
+    line = f"[eval] drop={args.drop}: return {rets.mean():.2f} ± {sem:.2f} (s.e.m., {len(rets)} episodes)"
+    if args.env == "simple_shapes":
+        lo, hi = ss_reference_returns()
+        out["normalised_return"] = (out["return_mean"] - lo) / (hi - lo)
+        line += f", normalised {out['normalised_return']:.3f}"
+    if args.env == "robodesk":
+        out["success_count"] = float(succ.mean())
+        succ_sem = succ.std(ddof=1) / math.sqrt(len(succ)) if len(succ) > 1 else 0.0
+        line += f", success count {succ.mean():.1f} ± {succ_sem:.1f}"
+    print(line)
+    return out
+
+
+# ==== run infrastructure: the same in every agent script (tests/test_shared_code.py) ====
 # --------------------------------------------------------------------------------------------------
 # Pre-trained VAEs and GW (the same block in every agent script): where they are read from, and what to
 # run when they are missing. A Simple Shapes VAE + GW made by `pretrain_vae_gw.py --env simple_shapes
@@ -1127,6 +1587,8 @@ def dream_filmstrip(agent: Agent, vaes: FrozenVAEs, args: Args, steps: int, seed
 # under --checkpoint-dir always win.
 BUNDLED = Path(__file__).resolve().parent / "envs" / "pretrained"
 ROBODESK_TASKS = "push_green open_slide open_drawer upright_block_off_table flat_block_in_bin"
+
+
 # The RoboDesk pipeline, at the CPU scale of docs/environments.md (times measured on a 2-core CPU) or at
 # the paper's scale (times of docs/pretrain_vae_gw.md: one CPU core collecting, one H100 training).
 ROBODESK_PIPELINE = """the RoboDesk agents read the frozen VAEs and GW of pretrain_vae_gw.py; make them first.
@@ -1411,275 +1873,6 @@ class StopRequest:
         self.restore()
 
 
-def cli(main, args_type) -> None:
-    """Run ``main`` on the parsed command line; a UsageError is printed as one line (exit code 2), and
-    Ctrl-C outside the places that save prints one line too (exit code 130)."""
-    try:
-        main(tyro.cli(args_type))
-    except UsageError as err:
-        print(f"error: {err}", file=sys.stderr, flush=True)
-        raise SystemExit(2) from None
-    except KeyboardInterrupt as err:
-        print(f"interrupted {err}".strip(), flush=True)
-        raise SystemExit(130) from None
-
-
-# --------------------------------------------------------------------------------------------------
-# Checkpoints and settings
-# --------------------------------------------------------------------------------------------------
-def vae_fingerprint(vaes: FrozenVAEs) -> float:
-    """A number that changes with the frozen weights: a resumed or evaluated agent must use the VAEs it
-    was trained on (its GW is part of the agent checkpoint)."""
-    return float(sum(p.double().sum() for p in vaes.parameters()))
-
-
-# Settings that may differ between the parts of one run (how long it runs, how it reports, where its files
-# are); every other setting defines the run, and --resume refuses a change to any of them.
-MAY_CHANGE = set(
-    "total_steps stop_at_criterion eval_every eval_episodes log_every save_every video_every device"
-    " torch_threads resume overwrite checkpoint checkpoint_dir vae_checkpoint exp_name"
-    " eval_only drop compile".split()
-)
-# Settings an evaluation must share with the agent it loads (they shape its networks or inputs).
-EVAL_KEYS = ("task", "reward_loss", "loss_preset")
-
-
-def load_agent_checkpoint(path: Path, args: Args, fingerprint: float) -> dict:
-    """The agent checkpoint at ``path``, checked against this command: same env and task, the frozen
-    VAEs it was trained on, and (``--resume``) every setting that defines the run. A checkpoint of the
-    previous layout (return scale in the loop state) is converted on reading."""
-    train = f"python gw_dreamer_e2e.py --env {args.env}"
-    if not path.is_file():
-        raise UsageError(f"no agent checkpoint at {path}; train one with `{train}`")
-    ckpt = read_checkpoint(path, train)
-    if ckpt.get("kind") != "gw_dreamer_e2e":
-        raise UsageError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected a gw_dreamer_e2e agent")
-    bad = non_finite({k: ckpt[k] for k in ("agent", "replay") if k in ckpt})
-    if bad:
-        raise UsageError(
-            f"{path} holds non-finite values ({bad}): it is no state to continue or evaluate; go back to a "
-            "copy saved earlier or train again"
-        )
-    if ckpt.get("env") != args.env:
-        raise UsageError(f"{path} is an agent for env {ckpt.get('env')!r}, but --env is {args.env!r}")
-    if abs(ckpt["vae_fingerprint"] - fingerprint) > 1e-6 * max(1.0, abs(fingerprint)):
-        raise UsageError(f"{path} was trained on other VAE weights ({ckpt['vae_checkpoint']})")
-    saved, now = ckpt["args"], asdict(args)
-    if args.env == "simple_shapes":
-        now["task"] = saved.get("task", now["task"])  # Simple Shapes has no task
-    # On RoboDesk --cpu-preset sets the network sizes; on Simple Shapes only the GW's batch.
-    changed = setting_changes(saved, now, EVAL_KEYS + (("cpu_preset",) if args.env == "robodesk" else ()))
-    if changed:
-        raise UsageError(f"{path} was trained with {' '.join(changed)}; pass {' '.join(changed)}")
-    changed = setting_changes(saved, now, [k for k in now if k not in MAY_CHANGE]) if args.resume else []
-    if changed:
-        raise UsageError(
-            f"{path} was made with {' '.join(changed)}, which differ from this command: give the same "
-            "settings to continue that run, or start a separate one (another --exp-name or --seed)"
-        )
-    if args.resume:
-        check_unrecorded(path, saved, args, MAY_CHANGE)
-    if "return_scale.ema" not in ckpt["agent"]:  # the return scale was a float of the loop state
-        state = ckpt["state"]
-        ckpt["agent"]["return_scale.ema"] = torch.tensor(
-            [state.pop("return_scale", 0.0)], dtype=torch.float64
-        )
-        ckpt["agent"]["return_scale.count"] = torch.tensor([float(state["updates"])], dtype=torch.float64)
-    return ckpt
-
-
-def check_settings(args: Args) -> None:
-    """Every numeric flag in range, and flags that only make sense together, before anything runs."""
-    for flag, value in vars(args).items():  # inf and nan would pass every range check below
-        if isinstance(value, float):
-            require(math.isfinite(value), flag, value, "must be a finite number")
-    check_device(args.device)
-    at_least_1 = "total_steps num_envs batch_size batch_length imag_horizon eval_every eval_episodes"
-    at_least_1 += " log_every save_every smoothing"
-    for flag in at_least_1.split():
-        require(getattr(args, flag) >= 1, flag, getattr(args, flag), "must be at least 1")
-    nonnegative = (
-        "learning_starts video_every entropy_coef wm_z_coef wm_reward_coef wm_done_coef actor_mean_reg"
-    )
-    for flag in nonnegative.split():
-        require(getattr(args, flag) >= 0, flag, getattr(args, flag), "must not be negative")
-    require(args.gw_updates >= 0, "gw_updates", args.gw_updates, "must not be negative")
-    require(
-        args.gw_batch_size >= 2, "gw_batch_size", args.gw_batch_size, "must be at least 2 (it pairs samples)"
-    )
-    positive = "train_ratio wm_lr ac_lr gw_cycle gw_lr_start gw_lr_max gw_lr_end fusion_temperature"
-    for flag in (positive + " contrastive_temperature").split():
-        require(getattr(args, flag) > 0, flag, getattr(args, flag), "must be positive")
-    require(args.gw_weight_decay >= 0, "gw_weight_decay", args.gw_weight_decay, "must not be negative")
-    require(0 < args.gamma <= 1, "gamma", args.gamma, "must be in (0, 1]")
-    for flag in ("lam", "slow_critic_decay", "return_norm_decay"):
-        require(0 <= getattr(args, flag) <= 1, flag, getattr(args, flag), "must be in [0, 1]")
-    need = (args.batch_length + 1) * args.num_envs
-    rule = f"must hold a replayed sequence (--batch-length + 1 entries) per environment: at least {need}"
-    require(args.buffer_size >= need, "buffer_size", args.buffer_size, rule)
-    rule = f"must be at least one agent step ({ACTION_REPEAT['robodesk']} frames)"
-    require(args.episode_length >= ACTION_REPEAT["robodesk"], "episode_length", args.episode_length, rule)
-    require(args.drop == "none" or args.eval_only, "drop", args.drop, "is for evaluation: add --eval-only")
-    rule = f"must be below --total-steps {args.total_steps:,}, or the run would make no update"
-    ok = args.eval_only or args.learning_starts < args.total_steps
-    require(ok, "learning_starts", args.learning_starts, rule)
-    for other in ("overwrite", "eval_only"):
-        if args.resume and getattr(args, other):
-            raise UsageError(f"--resume continues a run; it cannot go with --{other.replace('_', '-')}")
-    if args.env == "robodesk":
-        from envs.robodesk import TASKS
-
-        if args.task not in TASKS:
-            raise UsageError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
-
-
-def schedule(args: Args) -> str:
-    """One line that says how this run reads the paper's training schedule (printed at start)."""
-    repeat = ACTION_REPEAT[args.env]
-    starts = args.batch_size * (1 if args.imag_from == "last" else args.batch_length)
-    unit = "agent steps" if repeat == 1 else f"simulator frames ({repeat} per agent step)"
-    last = args.imag_from == "last"
-    where = "the newest state of each replayed sequence" if last else "every replayed state"
-    return (
-        f"schedule: one update per {args.train_ratio:g} agent steps (train ratio) after "
-        f"{args.learning_starts:,} random steps; world model on {args.batch_size} x {args.batch_length} "
-        f"replayed steps; {starts:,} dreams of {args.imag_horizon} steps from {where} (--imag-from "
-        f"{args.imag_from}); actor gradient {actor_grad(args)}; {args.total_steps:,} env steps, counted "
-        f"in {unit}"
-    )
-
-
-def actor_grad(args: Args) -> str:
-    """The actor's gradient estimator: --actor-grad, or by the action space (auto, as DreamerV3)."""
-    if args.actor_grad != "auto":
-        return args.actor_grad
-    return "reinforce" if args.env == "simple_shapes" else "dynamics"
-
-
-# --------------------------------------------------------------------------------------------------
-# The run: what the training loop carries, and the bookkeeping around Algorithm 2
-# --------------------------------------------------------------------------------------------------
-@dataclass
-class LoopState:
-    """Counters of the training loop (saved in the agent checkpoint, restored by --resume)."""
-
-    env_steps: int = 0  # in the paper's unit (RoboDesk: simulator frames)
-    updates: int = 0
-    gw_updates: int = 0  # the GW's own updates (its OneCycle schedule counts them)
-    flops: int = 0  # forward + backward FLOPs of every update so far (the paper's "RL training FLOPs")
-    flops_per_update: int = 0  # counted on the first update; every update has the same shapes
-    episodes: int = 0
-    criterion_step: int | None = None
-    recent: list = field(default_factory=list)  # the last --smoothing normalised training returns
-    next_eval: int = 0
-    next_save: int = 0
-    next_video: int = 0
-
-
-@dataclass
-class Run:
-    """One training run: its settings, networks, data, counters and outputs."""
-
-    args: Args
-    frozen: FrozenVAEs  # the frozen VAEs
-    agent: Agent
-    opts: dict
-    replay: Replay
-    state: LoopState
-    writer: SummaryWriter
-    agent_path: Path
-    pretrained: dict  # {"vae.pt": path}
-    model: str  # "gw" (GW-Dreamer end to end) or "clip" (its CLIP-like variant)
-    ref: tuple | None  # Simple Shapes returns of the random and the greedy policy (normalisation)
-    t0: float = field(default_factory=time.time)
-    steps0: int = 0
-
-    def normalise(self, ret: float) -> float:
-        return (ret - self.ref[0]) / (self.ref[1] - self.ref[0]) if self.ref else float("nan")
-
-
-def load_frozen(args: Args, dev) -> tuple[FrozenVAEs, dict]:
-    """The frozen VAEs this run reads (yours under --checkpoint-dir, else the bundled ones)."""
-    paths = pretrained_paths(args.checkpoint_dir, args.env, {"vae.pt": args.vae_checkpoint})
-    return load_vaes(args.env, paths["vae.pt"], args.checkpoint_dir, args.task).to(dev), paths
-
-
-def run_name(args: Args, model: str) -> str:
-    task = "" if args.env == "simple_shapes" else f"_{args.task}"
-    return f"{args.exp_name}_{model}_{args.env}{task}_s{args.seed}"
-
-
-def start_run(args: Args, vaes: FrozenVAEs, agent: Agent, paths: dict, agent_path: Path) -> Run:
-    """Claim the outputs, build optimizers and replay, resume when asked, and print what runs."""
-    model = "gw" if args.loss_preset == "gw" else "clip"
-    runs_dir = Path("runs") / run_name(args, model)
-    # Nothing of an earlier run is overwritten by accident, and the output folders take files now.
-    claim_outputs([agent_path, runs_dir], args.resume, args.overwrite, "gw_dreamer_e2e")
-    ensure_writable(agent_path.parent)
-    ensure_writable(runs_dir)
-    opts = make_optimizers(agent, args)
-    replay = Replay(args.buffer_size, args.num_envs, vaes.latent, SIZES[args.env]["actions"], args.seed)
-    state = LoopState(
-        next_eval=args.eval_every, next_save=args.save_every, next_video=args.video_every or args.total_steps
-    )
-    if args.resume:
-        ck = load_agent_checkpoint(agent_path, args, vae_fingerprint(vaes))
-        agent.load_state_dict(ck["agent"])
-        for name, opt in opts.items():
-            opt.load_state_dict(ck["opts"][name])
-        replay.load_state_dict(ck["replay"])
-        replay.close_episodes()  # the saved run stopped mid-episode
-        state = LoopState(**ck["state"])
-        torch.set_rng_state(ck["torch_rng"])
-        np.random.set_state(ck["np_rng"])
-        print(f"[{TAG}] resuming {agent_path} at env step {state.env_steps:,}")
-    writer = SummaryWriter(str(runs_dir))
-    if not args.resume:
-        table = "\n".join(f"|{k}|{v}|" for k, v in vars(args).items())
-        writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + table)
-    ref = ss_reference_returns() if args.env == "simple_shapes" else None
-    run = Run(args, vaes, agent, opts, replay, state, writer, agent_path, paths, model, ref)
-    run.steps0 = state.env_steps
-    n = {k: sum(p.numel() for p in getattr(agent, k).parameters()) for k in ("gw", "wm", "actor", "critic")}
-    frozen = sum(p.numel() for p in vaes.parameters())
-    task = "" if args.env == "simple_shapes" else f"_{args.task}"
-    print(
-        f"[{TAG}] {model.upper()}-Dreamer end to end on {args.env}{task}: GW {n['gw']:,}, "
-        f"world model {n['wm']:,}, actor {n['actor']:,}, critic {n['critic']:,} parameters "
-        f"(+ {frozen:,} frozen VAE)"
-    )
-    print(f"[{TAG}] {schedule(args)}")
-    if ref:
-        print(f"[{TAG}] normalised return: random policy {ref[0]:.1f} -> 0, greedy policy {ref[1]:.1f} -> 1")
-    return run
-
-
-def save(run: Run) -> None:
-    """The resumable agent checkpoint: networks, optimizers, replay, counters and random states."""
-    a = run.args
-    if a.compile and not all(torch.isfinite(p).all() for p in run.agent.parameters()):
-        step = run.state.env_steps
-        raise FloatingPointError(f"non-finite weights at env step {step:,}; {last_good(run.agent_path)}")
-    atomic_save(
-        {
-            "kind": "gw_dreamer_e2e",
-            "env": a.env,
-            "task": a.task,
-            "model": run.model,
-            "args": asdict(a),
-            "vae_checkpoint": str(run.pretrained["vae.pt"]),
-            "vae_fingerprint": vae_fingerprint(run.frozen),
-            "agent": run.agent.state_dict(),
-            "opts": {name: opt.state_dict() for name, opt in run.opts.items()},
-            "replay": run.replay.state_dict(),
-            "state": asdict(run.state),
-            "torch_rng": torch.get_rng_state(),
-            "np_rng": np.random.get_state(),
-        },
-        run.agent_path,
-    )
-
-
 def log_episode(run: Run, ret: float, success: float) -> None:
     """A finished training episode: its return, the smoothed normalised return and the criterion."""
     s, a, step = run.state, run.args, run.state.env_steps
@@ -1703,106 +1896,6 @@ def log_episode(run: Run, ret: float, success: float) -> None:
         )
 
 
-def bookkeeping(run: Run, logs: dict) -> None:
-    """What is due at this env step: scalars and a progress line, an evaluation, a dream video, a save."""
-    a, s, w = run.args, run.state, run.writer
-    step, repeat = s.env_steps, ACTION_REPEAT[a.env]
-    if step % a.log_every < a.num_envs * repeat and logs:
-        logs = {k: float(v) for k, v in logs.items()}  # the one host sync per log interval
-        if not all(map(math.isfinite, logs.values())):  # --compile checks here, not in the update
-            raise FloatingPointError(f"non-finite losses by env step {step:,}; {last_good(run.agent_path)}")
-        sps = (step - run.steps0) / max(time.time() - run.t0, 1e-9)
-        for k, v in logs.items():
-            w.add_scalar(f"charts/{k}" if k == "gw_lr" else f"losses/{k}", v, step)
-        w.add_scalar("charts/SPS", sps, step)
-        w.add_scalar("charts/updates", s.updates, step)
-        w.add_scalar("charts/agent_steps", step // repeat, step)
-        w.add_scalar("charts/train_flops", s.flops, step)
-        smooth = np.mean(s.recent) if s.recent else float("nan")
-        eta = (a.total_steps - step) / max(sps, 1e-9) / 60
-        print(
-            f"[{TAG}] step {step:,}/{a.total_steps:,} updates {s.updates:,} {sps:.1f} steps/s "
-            f"ETA {eta:.1f} min | wm {logs['loss_wm']:.3f} (z {logs['loss_z']:.3f} r {logs['loss_r']:.3f} "
-            f"d {logs['loss_d']:.3f}) gw {logs.get('loss_gw', math.nan):.3f} "
-            f"smoothed normalised return {smooth:.3f}",
-            flush=True,
-        )
-    if step >= s.next_eval:
-        s.next_eval += a.eval_every
-        rets, succ = run_episodes(run.agent, run.frozen, a, a.eval_episodes, "none", seed=10**6 + step)
-        w.add_scalar("eval/episodic_return", rets.mean(), step)
-        if run.ref:
-            w.add_scalar("eval/normalised_return", run.normalise(float(rets.mean())), step)
-        if a.env == "robodesk":
-            w.add_scalar("eval/success_count", succ.mean(), step)
-    if step >= s.next_video:
-        s.next_video += a.video_every or a.total_steps
-        strip = dream_filmstrip(run.agent, run.frozen, a, 16, seed=10**6)
-        w.add_image("dreams/real_top_imagined_bottom", strip, step, dataformats="HWC")
-    if step >= s.next_save:
-        s.next_save += a.save_every
-        save(run)
-
-
-def finish(run: Run) -> dict:
-    """Save the trained agent, then a final evaluation and dream video; the run's figures."""
-    a, s = run.args, run.state
-    save(run)  # before the final evaluation, so Ctrl-C there loses nothing
-    try:
-        rets, succ = run_episodes(run.agent, run.frozen, a, a.eval_episodes, "none", seed=10**6 + 1)
-        strip = dream_filmstrip(run.agent, run.frozen, a, 16, seed=10**6)
-    except KeyboardInterrupt:
-        run.writer.close()
-        print(f"[{TAG}] interrupted in the final evaluation; the agent is saved at {run.agent_path}")
-        raise SystemExit(130) from None
-    run.writer.add_image("dreams/real_top_imagined_bottom", strip, s.env_steps, dataformats="HWC")
-    run.writer.close()
-    result = {
-        "env_steps": s.env_steps,
-        "agent_steps": s.env_steps // ACTION_REPEAT[a.env],
-        "updates": s.updates,
-        "train_flops": s.flops,
-        "criterion_step": s.criterion_step,
-        "final_return": float(rets.mean()),
-        "wall_s": time.time() - run.t0,
-    }
-    if run.ref:
-        result["final_normalised_return"] = run.normalise(float(rets.mean()))
-    if a.env == "robodesk":
-        result["final_success_count"] = float(succ.mean())
-    print(f"[{TAG}] done: {result}; agent checkpoint {run.agent_path}")
-    return result
-
-
-def evaluate_checkpoint(agent: Agent, vaes: FrozenVAEs, args: Args, path: Path) -> dict:
-    """--eval-only: the modality ablation of a trained agent (paper section "Modality Ablation
-    Robustness"): --eval-episodes fresh episodes with --drop removed."""
-    agent.load_state_dict(load_agent_checkpoint(path, args, vae_fingerprint(vaes))["agent"])
-    rets, succ = run_episodes(agent, vaes, args, args.eval_episodes, args.drop, seed=args.seed + 10**6)
-    sem = rets.std(ddof=1) / math.sqrt(len(rets)) if len(rets) > 1 else 0.0
-    out = {"drop": args.drop, "return_mean": float(rets.mean()), "return_sem": float(sem)}
-    line = f"[eval] drop={args.drop}: return {rets.mean():.2f} ± {sem:.2f} (s.e.m., {len(rets)} episodes)"
-    if args.env == "simple_shapes":
-        lo, hi = ss_reference_returns()
-        out["normalised_return"] = (out["return_mean"] - lo) / (hi - lo)
-        line += f", normalised {out['normalised_return']:.3f}"
-    if args.env == "robodesk":
-        out["success_count"] = float(succ.mean())
-        succ_sem = succ.std(ddof=1) / math.sqrt(len(succ)) if len(succ) > 1 else 0.0
-        line += f", success count {succ.mean():.1f} ± {succ_sem:.1f}"
-    print(line)
-    return out
-
-
-def random_actions(rng: np.random.Generator, n: int, action_dim: int, discrete: bool, dev) -> torch.Tensor:
-    """The uniformly random policy that fills the replay buffer before learning starts."""
-    if discrete:
-        a = F.one_hot(torch.as_tensor(rng.integers(0, action_dim, n)), action_dim)
-    else:
-        a = torch.as_tensor(rng.uniform(-1, 1, (n, action_dim)))
-    return a.float().to(dev)
-
-
 def interrupted(run: Run) -> None:
     """Ctrl-C or SIGTERM: the step and its updates are done; save and exit 130."""
     save(run)
@@ -1815,97 +1908,17 @@ def interrupted(run: Run) -> None:
     raise SystemExit(130)  # the shell's code for a run ended by Ctrl-C
 
 
-# --------------------------------------------------------------------------------------------------
-# Algorithm 2
-# --------------------------------------------------------------------------------------------------
-def main(args: Args) -> dict:
-    args = args.resolve()
-    check_settings(args)
-    if args.torch_threads:
-        torch.set_num_threads(args.torch_threads)
-    dev = torch.device(args.device)
-    vaes, paths = load_frozen(args, dev)  # Require: the pre-trained unimodal models (VAEs)
-    random.seed(args.seed)
-    np.random.seed(args.seed)
-    torch.manual_seed(args.seed)
-    agent = Agent(args.env, args.reward_loss, args.return_norm_decay, args.cpu_preset).to(dev)
-    model = "gw" if args.loss_preset == "gw" else "clip"
-    default = Path(args.checkpoint_dir) / args.env / "agents" / f"{run_name(args, model)}.pt"
-    agent_path = Path(args.checkpoint) if args.checkpoint else default
-    if args.eval_only:
-        return evaluate_checkpoint(agent, vaes, args, agent_path)
-    # Initialize the GW, the world model, the actor-critic and the replay buffer (or continue a run).
-    run = start_run(args, vaes, agent, paths, agent_path)
-    state, replay, n_envs, repeat = run.state, run.replay, args.num_envs, ACTION_REPEAT[args.env]
-    losses = compiled_losses(dev) if args.compile else EAGER
-    action_dim = SIZES[args.env]["actions"]
-
-    envs_ = make_envs(args, n_envs)
-    obs, _ = envs_.reset(seed=args.seed + state.env_steps)
-    h = torch.zeros(n_envs, agent.wm.hidden, device=dev)
-    first = np.ones(n_envs, np.float32)
-    ep_ret, ep_succ = np.zeros(n_envs), np.zeros(n_envs)
-    rng = np.random.default_rng(args.seed + state.env_steps)
-    logs = {}
-    stop = StopRequest(TAG)
-    while state.env_steps < args.total_steps:
-        if args.stop_at_criterion and state.criterion_step is not None:
-            break
-        # Collect transitions (o_t, a_t, o_{t+1}, r_{t+1}, d_{t+1}) with the current policy into the
-        # replay buffer as frozen VAE means (u_v, u_attr) (uniformly random actions before learning
-        # starts); the policy reads z_t of the GW as it is now.
-        with torch.no_grad():
-            u_v, u_attr = vaes(obs)
-            z = agent.z(u_v, u_attr)
-            if state.env_steps < args.learning_starts:
-                a = random_actions(rng, n_envs, action_dim, agent.discrete, dev)
-            else:
-                a = agent.actor.act(agent.features(h, z))
-            h = agent.wm.step(h, z, a)
-        obs, r, term, trunc, info = envs_.step(action_for_env(a, agent.discrete))
-        u = (u_v.cpu().numpy(), u_attr.cpu().numpy())
-        replay.add(np.arange(n_envs), *u, a.cpu().numpy(), r, term, first, np.zeros(n_envs))
-        first = np.zeros(n_envs, np.float32)
-        ep_ret += r
-        ep_succ += step_success(info, n_envs)
-        state.env_steps += n_envs * repeat  # the paper's unit: simulator frames on RoboDesk
-        done = term | trunc
-        if done.any():  # the episode's final observation closes its stream (an entry marked last)
-            ends = np.flatnonzero(done)
-            u_final = (u.cpu().numpy() for u in vaes(final_observations(info, ends)))
-            zeros, no_action = np.zeros(len(ends)), np.zeros((len(ends), action_dim))
-            replay.add(ends, *u_final, no_action, zeros, zeros, zeros, np.ones(len(ends)))
-            for i in ends:
-                log_episode(run, float(ep_ret[i]), float(ep_succ[i]))
-            ep_ret[ends], ep_succ[ends], first[ends] = 0.0, 0.0, 1.0
-            h[torch.as_tensor(ends, device=dev)] = 0.0
-
-        # Training steps: the updates owed by the train ratio, each two GW updates, the world model
-        # and the actor-critic in dreams (train_update), once the buffer holds a full batch sequence.
-        while state.updates < updates_due(state.env_steps, args) and replay.ready(args.batch_length):
-            try:
-                if state.flops_per_update == 0:  # same shapes every update: count the first one
-                    logs, state.flops_per_update = count_flops(
-                        lambda: train_update(agent, run.opts, replay, args, state.gw_updates, state.env_steps)
-                    )
-                else:
-                    logs = train_update(
-                        agent, run.opts, replay, args, state.gw_updates, state.env_steps, losses
-                    )
-            except FloatingPointError as err:
-                raise FloatingPointError(f"{err}; {last_good(run.agent_path)}") from err
-            state.updates += 1
-            state.gw_updates += args.gw_updates
-            state.flops += state.flops_per_update
-
-        bookkeeping(run, logs)
-        if stop.requested:
-            envs_.close()
-            stop.restore()
-            interrupted(run)
-    stop.restore()
-    envs_.close()
-    return finish(run)
+def cli(main, args_type) -> None:
+    """Run ``main`` on the parsed command line; a UsageError is printed as one line (exit code 2), and
+    Ctrl-C outside the places that save prints one line too (exit code 130)."""
+    try:
+        main(tyro.cli(args_type))
+    except UsageError as err:
+        print(f"error: {err}", file=sys.stderr, flush=True)
+        raise SystemExit(2) from None
+    except KeyboardInterrupt as err:
+        print(f"interrupted {err}".strip(), flush=True)
+        raise SystemExit(130) from None
 
 
 if __name__ == "__main__":

@@ -148,16 +148,403 @@ class Args:
     """modality removed at evaluation: clip/gw set alpha to (0, 1) / (1, 0), raw/vae zero the input"""
 
 
-# Simulator frames per agent step. The paper counts RoboDesk "environment steps" in frames ("2,000
-# environment steps but with an action repetition of 4 steps, leading to 500 chosen actions"), so step
-# counts (--total-steps, criteria, logs) are frames there; Simple Shapes has no action repeat.
-ACTION_REPEAT = {"simple_shapes": 1, "robodesk": 4}
 ENV_SPECS = {  # must agree with pretrain_vae_gw.py (checked against the checkpoints)
     "simple_shapes": {"image": 32, "attr": 11, "latent": 10, "z": 10, "gw_hidden": 64},
     "robodesk": {"image": 64, "attr": 76, "latent": 40, "z": 76, "gw_hidden": 512},
 }
-FUSION = {"none": (0.5, 0.5), "vision": (0.0, 1.0), "attr": (1.0, 0.0)}  # (alpha_v, alpha_attr)
 TAG = "ppo"  # the prefix of every line this script prints
+
+
+def mlp(cin: int, hidden: int, cout: int, depth: int, act=nn.ReLU) -> nn.Sequential:
+    layers = []
+    for _ in range(depth):
+        layers += [nn.Linear(cin, hidden), act()]
+        cin = hidden
+    return nn.Sequential(*layers, nn.Linear(hidden, cout))
+
+
+# --------------------------------------------------------------------------------------------------
+# Agent (CleanRL's PPO agent; stable-baselines3's layout: a feature extractor, then separate 64-64 tanh
+# MLPs for the policy and the value)
+# --------------------------------------------------------------------------------------------------
+def layer_init(layer: nn.Linear | nn.Conv2d, std: float = math.sqrt(2), bias: float = 0.0):
+    nn.init.orthogonal_(layer.weight, std)
+    nn.init.constant_(layer.bias, bias)
+    return layer
+
+
+class RawExtractor(nn.Module):
+    """Stacked images through a small CNN (SB3's NatureCNN needs 36 px or more; Simple Shapes has 32),
+    concatenated with the stacked attribute vectors (SB3's CombinedExtractor flattens vectors)."""
+
+    def __init__(self, channels: int, side: int, attr_dim: int):
+        super().__init__()
+        convs, cin, size = [], channels, side
+        for cout in (32, 64, 64, 64)[: int(np.log2(side)) - 2]:  # down to 4x4
+            convs += [layer_init(nn.Conv2d(cin, cout, 3, 2, 1)), nn.ReLU()]
+            cin, size = cout, size // 2
+        self.cnn = nn.Sequential(
+            *convs, nn.Flatten(), layer_init(nn.Linear(cin * size * size, 256)), nn.ReLU()
+        )
+        self.out_dim = 256 + attr_dim
+
+    def forward(self, x: dict[str, torch.Tensor]) -> torch.Tensor:
+        return torch.cat([self.cnn(x["image"].float() / 255.0), x["attr"]], -1)
+
+
+def tanh_mlp(cin: int, h: int) -> list[nn.Module]:
+    """Two tanh layers of h units, orthogonally initialised (the hidden part of each PPO head)."""
+    return [layer_init(nn.Linear(cin, h)), nn.Tanh(), layer_init(nn.Linear(h, h)), nn.Tanh()]
+
+
+class Agent(nn.Module):
+    def __init__(self, observer: Observer, args: Args, n_actions: int, discrete: bool):
+        super().__init__()
+        k = args.frame_stack
+        if observer.variant == "raw":
+            self.extract = RawExtractor(3 * k, observer.image_shape[1], observer.attr_dim * k)
+            feat = self.extract.out_dim
+        else:
+            self.extract = nn.Identity()
+            feat = observer.feat_dim * k
+        h = args.hidden
+        self.actor = nn.Sequential(*tanh_mlp(feat, h), layer_init(nn.Linear(h, n_actions), std=0.01))
+        self.critic = nn.Sequential(*tanh_mlp(feat, h), layer_init(nn.Linear(h, 1), std=1.0))
+        self.discrete = discrete
+        if not discrete:  # state-independent log std (CleanRL's continuous PPO)
+            self.actor_logstd = nn.Parameter(torch.zeros(1, n_actions))
+
+    def features(self, x: dict[str, torch.Tensor]) -> torch.Tensor:
+        return self.extract(x) if isinstance(self.extract, RawExtractor) else x["x"]
+
+    def get_value(self, x: dict[str, torch.Tensor]) -> torch.Tensor:
+        return self.critic(self.features(x)).squeeze(-1)
+
+    def get_action_and_value(self, x: dict[str, torch.Tensor], action: torch.Tensor | None = None):
+        f = self.features(x)
+        out = self.actor(f)
+        if self.discrete:
+            dist = torch.distributions.Categorical(logits=out)
+        else:
+            dist = torch.distributions.Normal(out, self.actor_logstd.expand_as(out).exp())
+        if action is None:
+            action = dist.sample()
+        logp, ent = dist.log_prob(action), dist.entropy()
+        if not self.discrete:
+            logp, ent = logp.sum(-1), ent.sum(-1)
+        return action, logp, ent, self.critic(f).squeeze(-1)
+
+    def act_greedy(self, x: dict[str, torch.Tensor]) -> torch.Tensor:
+        out = self.actor(self.features(x))
+        return out.argmax(-1) if self.discrete else out
+
+
+def count_flops(fn):
+    """``fn()`` and the forward + backward FLOPs it took (torch.utils.flop_counter)."""
+    with FlopCounterMode(display=False) as counter:
+        out = fn()
+    return out, counter.get_total_flops()
+
+
+def ppo_loss(agent: Agent, mb: dict, args: Args):
+    """CleanRL's PPO loss on one minibatch: clipped surrogate, clipped value loss, entropy bonus."""
+    _, newlogp, entropy, newvalue = agent.get_action_and_value(mb["obs"], mb["actions"])
+    logratio = newlogp - mb["logprobs"]
+    ratio = logratio.exp()
+    with torch.no_grad():
+        approx_kl = ((ratio - 1) - logratio).mean()
+        clipfrac = ((ratio - 1.0).abs() > args.clip_coef).float().mean()
+    adv = mb["advantages"]
+    if args.norm_adv:
+        adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+    pg_loss = torch.max(-adv * ratio, -adv * ratio.clamp(1 - args.clip_coef, 1 + args.clip_coef)).mean()
+    if args.clip_vloss:
+        v_clipped = mb["values"] + (newvalue - mb["values"]).clamp(-args.clip_coef, args.clip_coef)
+        v_loss = 0.5 * torch.max((newvalue - mb["returns"]) ** 2, (v_clipped - mb["returns"]) ** 2).mean()
+    else:
+        v_loss = 0.5 * ((newvalue - mb["returns"]) ** 2).mean()
+    ent = entropy.mean()
+    loss = pg_loss - args.ent_coef * ent + args.vf_coef * v_loss
+    terms = {"policy_loss": pg_loss, "value_loss": v_loss, "entropy": ent}
+    return loss, terms | {"approx_kl": approx_kl, "clipfrac": clipfrac}
+
+
+class RewardNormalizer:
+    """r / sqrt(Var[G] + eps), G the running discounted return of each environment, Var a running
+    variance over all of them (no mean subtraction, clipped to +-10, as VecNormalize)."""
+
+    def __init__(self, num_envs: int, gamma: float, enabled: bool):
+        self.gamma, self.enabled = gamma, enabled
+        self.ret = np.zeros(num_envs)
+        self.count, self.mean, self.var = 1e-4, 0.0, 1.0
+
+    def __call__(self, r: np.ndarray, done: np.ndarray) -> np.ndarray:
+        if not self.enabled:
+            return r
+        self.ret = self.ret * self.gamma + r
+        b_mean, b_var, b_n = self.ret.mean(), self.ret.var(), len(self.ret)
+        delta, total = b_mean - self.mean, self.count + b_n  # parallel mean/variance update (Chan et al.)
+        self.var = (self.var * self.count + b_var * b_n + delta**2 * self.count * b_n / total) / total
+        self.mean, self.count = self.mean + delta * b_n / total, total
+        self.ret[done] = 0.0
+        return np.clip(r / np.sqrt(self.var + 1e-8), -10.0, 10.0)
+
+    def state_dict(self) -> dict:
+        return {"ret": self.ret, "count": self.count, "mean": self.mean, "var": self.var}
+
+    def load_state_dict(self, s: dict) -> None:
+        self.ret, self.count, self.mean, self.var = s["ret"], s["count"], s["mean"], s["var"]
+
+
+def gae(rewards, values, next_value, terminated, args: Args) -> torch.Tensor:
+    """Generalised advantage estimation over a rollout (T, N). ``terminated[t]`` cuts the bootstrap
+    after step t; time-limit truncations were already folded into the rewards (see the rollout)."""
+    adv = torch.zeros_like(rewards)
+    last = torch.zeros_like(next_value)
+    for t in reversed(range(len(rewards))):
+        nxt = next_value if t == len(rewards) - 1 else values[t + 1]
+        nonterminal = 1.0 - terminated[t]
+        delta = rewards[t] + args.gamma * nxt * nonterminal - values[t]
+        last = delta + args.gamma * args.gae_lambda * nonterminal * last
+        adv[t] = last
+    return adv
+
+
+def ppo_update(agent: Agent, optimizer, mb: dict, args: Args, env_step: int) -> dict:
+    """One Adam step on the PPO loss of a minibatch (gradient norm clipped)."""
+    loss, terms = ppo_loss(agent, mb, args)
+    if not torch.isfinite(loss):
+        raise FloatingPointError(f"non-finite PPO loss at env step {env_step:,}")
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)
+    optimizer.step()
+    return terms
+
+
+# --------------------------------------------------------------------------------------------------
+# CleanRL's PPO loop
+# --------------------------------------------------------------------------------------------------
+def main(args: Args) -> dict:
+    check_settings(args)
+    if args.torch_threads:
+        torch.set_num_threads(args.torch_threads)
+    dev = torch.device(args.device)
+    observer, frozen = load_observer(args)
+    observer = observer.to(dev)
+    discrete = args.env == "simple_shapes"
+    n_actions = 7 if discrete else 5
+    random.seed(args.seed)
+    np.random.seed(args.seed)
+    torch.manual_seed(args.seed)
+    agent = Agent(observer, args, n_actions, discrete).to(dev)
+    default = Path(args.checkpoint_dir) / args.env / "agents" / f"{run_name(args)}.pt"
+    agent_path = Path(args.checkpoint) if args.checkpoint else default
+    if args.eval_only:
+        return evaluate_checkpoint(agent, observer, args, frozen, agent_path, dev)
+    batch_size = args.num_envs * args.num_steps  # agent steps per rollout
+    repeat = ACTION_REPEAT[args.env]  # env steps (the paper's unit, frames on RoboDesk) per agent step
+    num_iterations = -(-args.total_steps // (batch_size * repeat))  # whole rollouts, at least total_steps
+    if (steps := num_iterations * batch_size * repeat) != args.total_steps:
+        print(
+            f"--total-steps {args.total_steps:,} is no whole number of rollouts ({batch_size * repeat:,} env "
+            f"steps each): training {num_iterations:,} rollouts, {steps:,} steps"
+        )
+    run = start_run(args, observer, agent, frozen, agent_path, num_iterations)
+    state, optimizer = run.state, run.optimizer
+
+    # Rollout storage (T, N, ...); observations keep the stacked frames the policy saw.
+    envs_ = make_envs(args, args.num_envs)
+    obs, _ = envs_.reset(seed=args.seed + state.env_steps)
+    stack = FrameStack(args.frame_stack)
+    x = stack.reset(observer(obs, "none", dev))
+    store = {k: torch.zeros((args.num_steps, *v.shape), dtype=v.dtype, device=dev) for k, v in x.items()}
+    act_shape = () if discrete else (n_actions,)
+    act_dtype = torch.long if discrete else torch.float32
+    actions = torch.zeros((args.num_steps, args.num_envs, *act_shape), dtype=act_dtype, device=dev)
+    logprobs, rewards, values, terms = (
+        torch.zeros((args.num_steps, args.num_envs), device=dev) for _ in range(4)
+    )
+    ep_ret, ep_succ = np.zeros(args.num_envs), np.zeros(args.num_envs)
+    stats = {}
+    stop = StopRequest(TAG)  # Ctrl-C: the rollout and its update finish, then the run saves and exits
+    while state.iteration < num_iterations:
+        if args.stop_at_criterion and state.criterion_step is not None:
+            break
+        state.iteration += 1
+        if args.anneal_lr:
+            frac = 1.0 - (state.iteration - 1.0) / num_iterations
+            optimizer.param_groups[0]["lr"] = frac * args.learning_rate
+        # Rollout: num_steps steps of every environment with the current policy.
+        for t in range(args.num_steps):
+            for k in store:
+                store[k][t] = x[k]
+            with torch.no_grad():
+                action, logp, _, value = agent.get_action_and_value(x)
+            actions[t], logprobs[t], values[t] = action, logp, value
+            obs, r, term, trunc, info = envs_.step(env_action(action, discrete))
+            state.env_steps += args.num_envs * repeat
+            ep_ret += r
+            ep_succ += step_success(info, args.num_envs)
+            r = torch.as_tensor(run.reward_norm(r, term | trunc), dtype=torch.float32, device=dev)
+            frame = observer(obs, "none", dev)
+            x = stack.push(frame)
+            ends = np.flatnonzero(term | trunc)
+            if len(ends):
+                bootstrap_truncations(run, r, info, term, trunc, {k: v[t] for k, v in store.items()})
+                x = stack.reset(frame, ends)
+                for i in ends:
+                    log_episode(run, float(ep_ret[i]), float(ep_succ[i]))
+                ep_ret[ends], ep_succ[ends] = 0.0, 0.0
+            rewards[t] = r
+            terms[t] = torch.as_tensor(term | trunc, dtype=torch.float32, device=dev)
+
+        # Advantages (GAE), then update_epochs passes of minibatch updates over the rollout.
+        with torch.no_grad():
+            advantages = gae(rewards, values, agent.get_value(x), terms, args)
+            returns = advantages + values
+        flat = {
+            "obs": {k: v.reshape(batch_size, *v.shape[2:]) for k, v in store.items()},
+            "actions": actions.reshape(batch_size, *act_shape),
+            "logprobs": logprobs.reshape(-1),
+            "advantages": advantages.reshape(-1),
+            "returns": returns.reshape(-1),
+            "values": values.reshape(-1),
+        }
+        for _ in range(args.update_epochs):
+            perm = torch.randperm(batch_size, device=dev)
+            for start in range(0, batch_size - args.minibatch_size + 1, args.minibatch_size):
+                idx = perm[start : start + args.minibatch_size]
+                mb = {
+                    k: ({kk: vv[idx] for kk, vv in v.items()} if k == "obs" else v[idx])
+                    for k, v in flat.items()
+                }
+                try:
+                    if state.flops_per_minibatch == 0:  # same shapes every minibatch: count the first one
+                        stats, state.flops_per_minibatch = count_flops(
+                            lambda mb=mb: ppo_update(agent, optimizer, mb, args, state.env_steps)
+                        )
+                    else:
+                        stats = ppo_update(agent, optimizer, mb, args, state.env_steps)
+                except FloatingPointError as err:
+                    raise FloatingPointError(f"{err}; {last_good(agent_path)}") from err
+                state.flops += state.flops_per_minibatch
+            if args.target_kl is not None and stats["approx_kl"] > args.target_kl:
+                break
+
+        log_iteration(run, stats, flat, num_iterations * batch_size * repeat)
+        if state.iteration % args.save_every == 0 and not stop.requested:
+            save(run)
+        if stop.requested:
+            envs_.close()
+            stop.restore()
+            interrupted(run)
+    stop.restore()
+    envs_.close()
+    return finish(run)
+
+
+# Simulator frames per agent step. The paper counts RoboDesk "environment steps" in frames ("2,000
+# environment steps but with an action repetition of 4 steps, leading to 500 chosen actions"), so step
+# counts (--total-steps, criteria, logs) are frames there; Simple Shapes has no action repeat.
+ACTION_REPEAT = {"simple_shapes": 1, "robodesk": 4}
+
+
+class FrameStack:
+    """The last ``k`` frames of each environment, concatenated along the feature/channel axis; an
+    environment that starts an episode is refilled with k copies of its first frame."""
+
+    def __init__(self, k: int):
+        self.k, self.frames = k, None
+
+    def reset(self, frame: dict[str, torch.Tensor], idx: np.ndarray | None = None) -> dict[str, torch.Tensor]:
+        if self.frames is None or idx is None:
+            self.frames = {key: torch.cat([v] * self.k, 1) for key, v in frame.items()}
+        else:
+            for key, v in frame.items():
+                self.frames[key][idx] = torch.cat([v[idx]] * self.k, 1)
+        return {key: v.clone() for key, v in self.frames.items()}
+
+    def push(self, frame: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        self.frames = {key: self.shifted(key, v) for key, v in frame.items()}
+        return {key: v.clone() for key, v in self.frames.items()}
+
+    def shifted(self, key: str, v: torch.Tensor) -> torch.Tensor:
+        """The stack of ``key`` with ``v`` appended as the newest frame (oldest dropped)."""
+        width = v.shape[1]
+        return torch.cat([self.frames[key][:, width:], v], 1)
+
+
+# --------------------------------------------------------------------------------------------------
+# Environments, evaluation, checkpoints
+# --------------------------------------------------------------------------------------------------
+def make_envs(args: Args, num_envs: int):
+    """Vector env with same-step autoreset (info["final_obs"] holds the last observation)."""
+    if args.env == "simple_shapes":
+        from envs.simple_shapes import SimpleShapesVectorEnv
+
+        return SimpleShapesVectorEnv(num_envs)
+    from envs.robodesk import TASKS
+
+    if args.task not in TASKS:
+        raise UsageError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
+    fns = [
+        lambda: gym.make(
+            "RoboDesk-v0",
+            task=args.task,
+            render_quality=args.render_quality,
+            action_repeat=ACTION_REPEAT["robodesk"],
+            episode_length=args.episode_length,
+        )
+        for _ in range(num_envs)
+    ]
+    return gym.vector.SyncVectorEnv(fns, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
+
+
+def final_observations(info: dict, ends: np.ndarray) -> dict[str, np.ndarray]:
+    """Last observations of the episodes that ended: a dict of arrays (batched Simple Shapes env) or an
+    array of per-env dicts (gymnasium's SyncVectorEnv)."""
+    fo = info["final_obs"]
+    if isinstance(fo, dict):
+        return {k: v[ends] for k, v in fo.items()}
+    return {k: np.stack([fo[i][k] for i in ends]) for k in fo[ends[0]]}
+
+
+def step_success(info: dict, n: int) -> np.ndarray:
+    """RoboDesk's per-step success flag; for an env that just reset, the flag of its final step."""
+    if "success" not in info:
+        return np.zeros(n)
+    success = np.asarray(info["success"], float).copy()
+    for i in np.flatnonzero(info.get("_final_info", np.zeros(n, bool))):
+        success[i] = float(info["final_info"]["success"][i])
+    return success
+
+
+def env_action(action: torch.Tensor, discrete: bool) -> np.ndarray:
+    a = action.cpu().numpy()
+    return a if discrete else np.clip(a, -1.0, 1.0).astype(np.float32)
+
+
+@torch.no_grad()
+def evaluate(agent: Agent, observer: Observer, args: Args, n: int, drop: str, seed: int, dev):
+    """n episodes with the greedy action (arg-max / Gaussian mean) and ``drop`` applied: per-episode
+    returns and success counts."""
+    envs_ = make_envs(args, n)
+    obs, _ = envs_.reset(seed=seed)
+    stack = FrameStack(args.frame_stack)
+    x = stack.reset(observer(obs, drop, dev))
+    returns, successes, alive = np.zeros(n), np.zeros(n), np.ones(n, bool)
+    while alive.any():
+        obs, r, term, trunc, info = envs_.step(env_action(agent.act_greedy(x), agent.discrete))
+        returns += r * alive
+        successes += step_success(info, n) * alive
+        alive &= ~(term | trunc)
+        x = stack.push(observer(obs, drop, dev))
+    envs_.close()
+    return returns, successes
+
+
+FUSION = {"none": (0.5, 0.5), "vision": (0.0, 1.0), "attr": (1.0, 0.0)}  # (alpha_v, alpha_attr)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -217,14 +604,6 @@ class AttrVAE(nn.Module):
 
     def encode_mean(self, a: torch.Tensor) -> torch.Tensor:
         return self.encoder(a).chunk(2, dim=-1)[0]
-
-
-def mlp(cin: int, hidden: int, cout: int, depth: int, act=nn.ReLU) -> nn.Sequential:
-    layers = []
-    for _ in range(depth):
-        layers += [nn.Linear(cin, hidden), act()]
-        cin = hidden
-    return nn.Sequential(*layers, nn.Linear(hidden, cout))
 
 
 class GlobalWorkspace(nn.Module):
@@ -343,107 +722,271 @@ def check_gw_vae_pair(vae: dict, gw: dict, vae_path: Path, gw_path: Path, checkp
         )
 
 
-class FrameStack:
-    """The last ``k`` frames of each environment, concatenated along the feature/channel axis; an
-    environment that starts an episode is refilled with k copies of its first frame."""
-
-    def __init__(self, k: int):
-        self.k, self.frames = k, None
-
-    def reset(self, frame: dict[str, torch.Tensor], idx: np.ndarray | None = None) -> dict[str, torch.Tensor]:
-        if self.frames is None or idx is None:
-            self.frames = {key: torch.cat([v] * self.k, 1) for key, v in frame.items()}
-        else:
-            for key, v in frame.items():
-                self.frames[key][idx] = torch.cat([v[idx]] * self.k, 1)
-        return {key: v.clone() for key, v in self.frames.items()}
-
-    def push(self, frame: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        self.frames = {key: self.shifted(key, v) for key, v in frame.items()}
-        return {key: v.clone() for key, v in self.frames.items()}
-
-    def shifted(self, key: str, v: torch.Tensor) -> torch.Tensor:
-        """The stack of ``key`` with ``v`` appended as the newest frame (oldest dropped)."""
-        width = v.shape[1]
-        return torch.cat([self.frames[key][:, width:], v], 1)
+# Settings that may differ between the parts of one run (how long it runs, how it reports, where its files
+# are); every other setting defines the run, and --resume refuses a change to any of them.
+MAY_CHANGE = set(
+    "total_steps stop_at_criterion eval_episodes save_every device torch_threads resume overwrite"
+    " checkpoint checkpoint_dir vae_checkpoint gw_checkpoint exp_name eval_only drop".split()
+)
 
 
-# --------------------------------------------------------------------------------------------------
-# Agent (CleanRL's PPO agent; stable-baselines3's layout: a feature extractor, then separate 64-64 tanh
-# MLPs for the policy and the value)
-# --------------------------------------------------------------------------------------------------
-def layer_init(layer: nn.Linear | nn.Conv2d, std: float = math.sqrt(2), bias: float = 0.0):
-    nn.init.orthogonal_(layer.weight, std)
-    nn.init.constant_(layer.bias, bias)
-    return layer
+# Settings an evaluation must share with the agent it loads (they shape its networks or inputs).
+EVAL_KEYS = ("task", "variant", "frame_stack", "hidden")
 
 
-class RawExtractor(nn.Module):
-    """Stacked images through a small CNN (SB3's NatureCNN needs 36 px or more; Simple Shapes has 32),
-    concatenated with the stacked attribute vectors (SB3's CombinedExtractor flattens vectors)."""
-
-    def __init__(self, channels: int, side: int, attr_dim: int):
-        super().__init__()
-        convs, cin, size = [], channels, side
-        for cout in (32, 64, 64, 64)[: int(np.log2(side)) - 2]:  # down to 4x4
-            convs += [layer_init(nn.Conv2d(cin, cout, 3, 2, 1)), nn.ReLU()]
-            cin, size = cout, size // 2
-        self.cnn = nn.Sequential(
-            *convs, nn.Flatten(), layer_init(nn.Linear(cin * size * size, 256)), nn.ReLU()
+def load_agent_checkpoint(path: Path, args: Args, frozen: dict) -> dict:
+    """The PPO checkpoint at ``path``, checked against this command: same env, task and variant, the
+    frozen weights it was trained on, and (``--resume``) every setting that defines the run."""
+    train = f"python ppo_variants.py --env {args.env} --variant {args.variant}"
+    if not path.is_file():
+        raise UsageError(f"no agent checkpoint at {path}; train one with `{train}`")
+    ckpt = read_checkpoint(path, train)
+    if ckpt.get("kind") != "ppo":
+        raise UsageError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected a ppo agent")
+    bad = non_finite({k: ckpt[k] for k in ("agent", "replay") if k in ckpt})
+    if bad:
+        raise UsageError(
+            f"{path} holds non-finite values ({bad}): it is no state to continue or evaluate; go back to a "
+            "copy saved earlier or train again"
         )
-        self.out_dim = 256 + attr_dim
-
-    def forward(self, x: dict[str, torch.Tensor]) -> torch.Tensor:
-        return torch.cat([self.cnn(x["image"].float() / 255.0), x["attr"]], -1)
-
-
-def tanh_mlp(cin: int, h: int) -> list[nn.Module]:
-    """Two tanh layers of h units, orthogonally initialised (the hidden part of each PPO head)."""
-    return [layer_init(nn.Linear(cin, h)), nn.Tanh(), layer_init(nn.Linear(h, h)), nn.Tanh()]
-
-
-class Agent(nn.Module):
-    def __init__(self, observer: Observer, args: Args, n_actions: int, discrete: bool):
-        super().__init__()
-        k = args.frame_stack
-        if observer.variant == "raw":
-            self.extract = RawExtractor(3 * k, observer.image_shape[1], observer.attr_dim * k)
-            feat = self.extract.out_dim
-        else:
-            self.extract = nn.Identity()
-            feat = observer.feat_dim * k
-        h = args.hidden
-        self.actor = nn.Sequential(*tanh_mlp(feat, h), layer_init(nn.Linear(h, n_actions), std=0.01))
-        self.critic = nn.Sequential(*tanh_mlp(feat, h), layer_init(nn.Linear(h, 1), std=1.0))
-        self.discrete = discrete
-        if not discrete:  # state-independent log std (CleanRL's continuous PPO)
-            self.actor_logstd = nn.Parameter(torch.zeros(1, n_actions))
-
-    def features(self, x: dict[str, torch.Tensor]) -> torch.Tensor:
-        return self.extract(x) if isinstance(self.extract, RawExtractor) else x["x"]
-
-    def get_value(self, x: dict[str, torch.Tensor]) -> torch.Tensor:
-        return self.critic(self.features(x)).squeeze(-1)
-
-    def get_action_and_value(self, x: dict[str, torch.Tensor], action: torch.Tensor | None = None):
-        f = self.features(x)
-        out = self.actor(f)
-        if self.discrete:
-            dist = torch.distributions.Categorical(logits=out)
-        else:
-            dist = torch.distributions.Normal(out, self.actor_logstd.expand_as(out).exp())
-        if action is None:
-            action = dist.sample()
-        logp, ent = dist.log_prob(action), dist.entropy()
-        if not self.discrete:
-            logp, ent = logp.sum(-1), ent.sum(-1)
-        return action, logp, ent, self.critic(f).squeeze(-1)
-
-    def act_greedy(self, x: dict[str, torch.Tensor]) -> torch.Tensor:
-        out = self.actor(self.features(x))
-        return out.argmax(-1) if self.discrete else out
+    if ckpt.get("env") != args.env:
+        raise UsageError(f"{path} is an agent for env {ckpt.get('env')!r}, but --env is {args.env!r}")
+    saved, now = ckpt["args"], asdict(args)
+    if args.env == "simple_shapes":
+        now["task"] = saved.get("task", now["task"])  # Simple Shapes has no task
+    changed = setting_changes(saved, now, EVAL_KEYS)
+    if changed:
+        raise UsageError(f"{path} was trained with {' '.join(changed)}; pass {' '.join(changed)}")
+    if abs(ckpt["fingerprint"] - frozen["fingerprint"]) > 1e-6 * max(1.0, abs(frozen["fingerprint"])):
+        raise UsageError(f"{path} was trained on other frozen weights ({', '.join(ckpt['frozen_paths'])})")
+    changed = setting_changes(saved, now, [k for k in now if k not in MAY_CHANGE]) if args.resume else []
+    if changed:
+        raise UsageError(
+            f"{path} was made with {' '.join(changed)}, which differ from this command: give the same "
+            "settings to continue that run, or start a separate one (another --exp-name or --seed)"
+        )
+    if args.resume:
+        check_unrecorded(path, saved, args, MAY_CHANGE)
+    return ckpt
 
 
+def check_settings(args: Args) -> None:
+    """Every numeric flag in range, and flags that only make sense together, before anything runs."""
+    for flag, value in vars(args).items():  # inf and nan would pass every range check below
+        if isinstance(value, float):
+            require(math.isfinite(value), flag, value, "must be a finite number")
+    check_device(args.device)
+    at_least_1 = "total_steps num_envs num_steps update_epochs minibatch_size frame_stack hidden"
+    for flag in (at_least_1 + " eval_episodes save_every smoothing").split():
+        require(getattr(args, flag) >= 1, flag, getattr(args, flag), "must be at least 1")
+    for flag in ("ent_coef", "vf_coef"):
+        require(getattr(args, flag) >= 0, flag, getattr(args, flag), "must not be negative")
+    for flag in ("learning_rate", "clip_coef", "max_grad_norm"):
+        require(getattr(args, flag) > 0, flag, getattr(args, flag), "must be positive")
+    require(0 < args.gamma <= 1, "gamma", args.gamma, "must be in (0, 1]")
+    require(0 <= args.gae_lambda <= 1, "gae_lambda", args.gae_lambda, "must be in [0, 1]")
+    rollout = args.num_envs * args.num_steps
+    rule = f"must fit in one rollout of --num-envs x --num-steps = {rollout:,} steps"
+    require(args.minibatch_size <= rollout, "minibatch_size", args.minibatch_size, rule)
+    rule = f"must be at least one agent step ({ACTION_REPEAT['robodesk']} frames)"
+    require(args.episode_length >= ACTION_REPEAT["robodesk"], "episode_length", args.episode_length, rule)
+    require(args.drop == "none" or args.eval_only, "drop", args.drop, "is for evaluation: add --eval-only")
+    for other in ("overwrite", "eval_only"):
+        if args.resume and getattr(args, other):
+            raise UsageError(f"--resume continues a run; it cannot go with --{other.replace('_', '-')}")
+    if args.env == "robodesk":
+        from envs.robodesk import TASKS
+
+        if args.task not in TASKS:
+            raise UsageError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
+
+
+# --------------------------------------------------------------------------------------------------
+# The run: what the training loop carries, and the bookkeeping around CleanRL's PPO loop
+# --------------------------------------------------------------------------------------------------
+@dataclass
+class LoopState:
+    """Counters of the training loop (saved in the agent checkpoint, restored by --resume)."""
+
+    iteration: int = 0  # rollouts collected (and trained on) so far
+    env_steps: int = 0  # in the paper's unit (RoboDesk: simulator frames)
+    flops: int = 0  # forward + backward FLOPs of every minibatch update so far
+    flops_per_minibatch: int = 0  # counted on the first minibatch; every one has the same shapes
+    episodes: int = 0
+    criterion_step: int | None = None
+    recent: list = field(default_factory=list)  # the last --smoothing normalised training returns
+
+
+@dataclass
+class Run:
+    """One training run: its settings, networks, counters and outputs."""
+
+    args: Args
+    frozen: Observer  # the variant's frozen VAEs / GW (nothing for raw observations)
+    agent: Agent
+    optimizer: torch.optim.Optimizer
+    reward_norm: RewardNormalizer
+    state: LoopState
+    writer: SummaryWriter
+    agent_path: Path
+    pretrained: dict  # {"fingerprint": float, "paths": [...]} of the frozen weights
+    ref: tuple | None  # Simple Shapes returns of the random and the greedy policy (normalisation)
+    t0: float = field(default_factory=time.time)
+    steps0: int = 0
+
+    def normalise(self, ret: float) -> float:
+        return (ret - self.ref[0]) / (self.ref[1] - self.ref[0]) if self.ref else float("nan")
+
+
+def run_name(args: Args) -> str:
+    task = "" if args.env == "simple_shapes" else f"_{args.task}"
+    return f"{args.exp_name}_{args.variant}_{args.env}{task}_s{args.seed}"
+
+
+def start_run(
+    args: Args, observer: Observer, agent: Agent, frozen: dict, agent_path: Path, iterations: int
+) -> Run:
+    """Claim the outputs, build the optimizer, resume when asked, and print what runs."""
+    runs_dir = Path("runs") / run_name(args)
+    # Nothing of an earlier run is overwritten by accident, and the output folders take files now.
+    claim_outputs([agent_path, runs_dir], args.resume, args.overwrite, "ppo")
+    ensure_writable(agent_path.parent)
+    ensure_writable(runs_dir)
+    optimizer = torch.optim.Adam(agent.parameters(), lr=args.learning_rate, eps=1e-5)
+    state, reward_norm = LoopState(), RewardNormalizer(args.num_envs, args.gamma, args.norm_reward)
+    if args.resume:
+        ck = load_agent_checkpoint(agent_path, args, frozen)
+        agent.load_state_dict(ck["agent"])
+        optimizer.load_state_dict(ck["optimizer"])
+        state = LoopState(**ck["state"])
+        reward_norm.load_state_dict(ck["reward_norm"])
+        torch.set_rng_state(ck["torch_rng"])
+        np.random.set_state(ck["np_rng"])
+        print(f"[{TAG}] resuming {agent_path} at env step {state.env_steps:,}")
+    writer = SummaryWriter(str(runs_dir))
+    if not args.resume:
+        table = "\n".join(f"|{k}|{v}|" for k, v in vars(args).items())
+        writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + table)
+    ref = ss_reference_returns() if args.env == "simple_shapes" else None
+    run = Run(args, observer, agent, optimizer, reward_norm, state, writer, agent_path, frozen, ref)
+    run.steps0 = state.env_steps
+    n_params = sum(p.numel() for p in agent.parameters())
+    task = "" if args.env == "simple_shapes" else f"_{args.task}"
+    rollout = args.num_envs * args.num_steps
+    print(
+        f"[{TAG}] {args.variant} PPO on {args.env}{task}: {n_params:,} trainable parameters, "
+        f"{iterations} rollouts of {rollout:,} steps"
+    )
+    if ref:
+        print(f"[{TAG}] normalised return: random policy {ref[0]:.1f} -> 0, greedy policy {ref[1]:.1f} -> 1")
+    return run
+
+
+def save(run: Run) -> None:
+    """The resumable agent checkpoint: networks, optimizer, reward normaliser, counters, random states."""
+    a = run.args
+    atomic_save(
+        {
+            "kind": "ppo",
+            "env": a.env,
+            "task": a.task,
+            "variant": a.variant,
+            "args": asdict(a),
+            "fingerprint": run.pretrained["fingerprint"],
+            "frozen_paths": run.pretrained["paths"],
+            "agent": run.agent.state_dict(),
+            "optimizer": run.optimizer.state_dict(),
+            "state": asdict(run.state),
+            "reward_norm": run.reward_norm.state_dict(),
+            "torch_rng": torch.get_rng_state(),
+            "np_rng": np.random.get_state(),
+        },
+        run.agent_path,
+    )
+
+
+def bootstrap_truncations(run: Run, r, info, term, trunc, before: dict) -> None:
+    """A time-limit truncation is not an end of the task: add to its reward the discounted value of its
+    final observation (stable-baselines3 does the same). ``before``: the stacks this step acted on."""
+    cut = np.flatnonzero(trunc & ~term)
+    if not len(cut):
+        return
+    dev = r.device
+    final = run.frozen(final_observations(info, cut), "none", dev)
+    x_final = {}
+    for k, v in final.items():  # the stack before this step's push, plus the final frame
+        x_final[k] = torch.cat([before[k][cut][:, v.shape[1] :], v], 1)
+    with torch.no_grad():
+        r[cut] += run.args.gamma * run.agent.get_value(x_final)
+
+
+def log_iteration(run: Run, stats: dict, flat: dict, total: int) -> None:
+    """The scalars and the progress line of one rollout and its update."""
+    s, w, step = run.state, run.writer, run.state.env_steps
+    var_y = flat["returns"].var()
+    explained = float("nan") if var_y == 0 else (1 - (flat["returns"] - flat["values"]).var() / var_y).item()
+    sps = (step - run.steps0) / max(time.time() - run.t0, 1e-9)
+    for k, v in stats.items():
+        w.add_scalar(f"losses/{k}", v.item(), step)
+    w.add_scalar("losses/explained_variance", explained, step)
+    w.add_scalar("charts/learning_rate", run.optimizer.param_groups[0]["lr"], step)
+    w.add_scalar("charts/SPS", sps, step)
+    w.add_scalar("charts/train_flops", s.flops, step)
+    smooth = np.mean(s.recent) if s.recent else float("nan")
+    print(
+        f"[{TAG}] step {step:,}/{total:,} {sps:.0f} steps/s | value loss {stats['value_loss'].item():.3f} "
+        f"entropy {stats['entropy'].item():.3f} smoothed normalised return {smooth:.3f}",
+        flush=True,
+    )
+
+
+def finish(run: Run) -> dict:
+    """Save the trained agent, then a final evaluation; the run's figures."""
+    a, s, dev = run.args, run.state, next(run.agent.parameters()).device
+    save(run)  # before the final evaluation, so Ctrl-C there loses nothing
+    try:
+        rets, succ = evaluate(run.agent, run.frozen, a, a.eval_episodes, "none", 10**6 + 1, dev)
+    except KeyboardInterrupt:
+        run.writer.close()
+        print(f"[{TAG}] interrupted in the final evaluation; the agent is saved at {run.agent_path}")
+        raise SystemExit(130) from None
+    run.writer.add_scalar("eval/episodic_return", rets.mean(), s.env_steps)
+    run.writer.close()
+    result = {
+        "env_steps": s.env_steps,
+        "train_flops": s.flops,
+        "criterion_step": s.criterion_step,
+        "final_return": float(rets.mean()),
+        "wall_s": time.time() - run.t0,
+    }
+    if run.ref:
+        result["final_normalised_return"] = run.normalise(float(rets.mean()))
+    if a.env == "robodesk":
+        result["final_success_count"] = float(succ.mean())
+    print(f"[{TAG}] done: {result}; agent checkpoint {run.agent_path}")
+    return result
+
+
+def evaluate_checkpoint(agent: Agent, observer: Observer, args: Args, frozen: dict, path: Path, dev) -> dict:
+    """--eval-only: the modality ablation of a trained agent (paper section "Modality Ablation
+    Robustness"): --eval-episodes fresh episodes with --drop removed."""
+    agent.load_state_dict(load_agent_checkpoint(path, args, frozen)["agent"])
+    rets, succ = evaluate(agent, observer, args, args.eval_episodes, args.drop, args.seed + 10**6, dev)
+    sem = rets.std(ddof=1) / math.sqrt(len(rets)) if len(rets) > 1 else 0.0
+    out = {"drop": args.drop, "return_mean": float(rets.mean()), "return_sem": float(sem)}
+    line = f"[eval] drop={args.drop}: return {rets.mean():.2f} ± {sem:.2f} (s.e.m., {len(rets)} episodes)"
+    if args.env == "simple_shapes":
+        lo, hi = ss_reference_returns()
+        out["normalised_return"] = (out["return_mean"] - lo) / (hi - lo)
+        line += f", normalised {out['normalised_return']:.3f}"
+    if args.env == "robodesk":
+        out["success_count"] = float(succ.mean())
+        line += f", success count {succ.mean():.1f}"
+    print(line)
+    return out
+
+
+# ==== run infrastructure: the same in every agent script (tests/test_shared_code.py) ====
 # --------------------------------------------------------------------------------------------------
 # Pre-trained VAEs and GW (the same block in every agent script): where they are read from, and what to
 # run when they are missing. A Simple Shapes VAE + GW made by `pretrain_vae_gw.py --env simple_shapes
@@ -451,6 +994,8 @@ class Agent(nn.Module):
 # under --checkpoint-dir always win.
 BUNDLED = Path(__file__).resolve().parent / "envs" / "pretrained"
 ROBODESK_TASKS = "push_green open_slide open_drawer upright_block_off_table flat_block_in_bin"
+
+
 # The RoboDesk pipeline, at the CPU scale of docs/environments.md (times measured on a 2-core CPU) or at
 # the paper's scale (times of docs/pretrain_vae_gw.md: one CPU core collecting, one H100 training).
 ROBODESK_PIPELINE = """the RoboDesk agents read the frozen VAEs and GW of pretrain_vae_gw.py; make them first.
@@ -735,352 +1280,6 @@ class StopRequest:
         self.restore()
 
 
-def cli(main, args_type) -> None:
-    """Run ``main`` on the parsed command line; a UsageError is printed as one line (exit code 2), and
-    Ctrl-C outside the places that save prints one line too (exit code 130)."""
-    try:
-        main(tyro.cli(args_type))
-    except UsageError as err:
-        print(f"error: {err}", file=sys.stderr, flush=True)
-        raise SystemExit(2) from None
-    except KeyboardInterrupt as err:
-        print(f"interrupted {err}".strip(), flush=True)
-        raise SystemExit(130) from None
-
-
-# --------------------------------------------------------------------------------------------------
-# Environments, evaluation, checkpoints
-# --------------------------------------------------------------------------------------------------
-def make_envs(args: Args, num_envs: int):
-    """Vector env with same-step autoreset (info["final_obs"] holds the last observation)."""
-    if args.env == "simple_shapes":
-        from envs.simple_shapes import SimpleShapesVectorEnv
-
-        return SimpleShapesVectorEnv(num_envs)
-    from envs.robodesk import TASKS
-
-    if args.task not in TASKS:
-        raise UsageError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
-    fns = [
-        lambda: gym.make(
-            "RoboDesk-v0",
-            task=args.task,
-            render_quality=args.render_quality,
-            action_repeat=ACTION_REPEAT["robodesk"],
-            episode_length=args.episode_length,
-        )
-        for _ in range(num_envs)
-    ]
-    return gym.vector.SyncVectorEnv(fns, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
-
-
-def final_observations(info: dict, ends: np.ndarray) -> dict[str, np.ndarray]:
-    """Last observations of the episodes that ended: a dict of arrays (batched Simple Shapes env) or an
-    array of per-env dicts (gymnasium's SyncVectorEnv)."""
-    fo = info["final_obs"]
-    if isinstance(fo, dict):
-        return {k: v[ends] for k, v in fo.items()}
-    return {k: np.stack([fo[i][k] for i in ends]) for k in fo[ends[0]]}
-
-
-def step_success(info: dict, n: int) -> np.ndarray:
-    """RoboDesk's per-step success flag; for an env that just reset, the flag of its final step."""
-    if "success" not in info:
-        return np.zeros(n)
-    success = np.asarray(info["success"], float).copy()
-    for i in np.flatnonzero(info.get("_final_info", np.zeros(n, bool))):
-        success[i] = float(info["final_info"]["success"][i])
-    return success
-
-
-def env_action(action: torch.Tensor, discrete: bool) -> np.ndarray:
-    a = action.cpu().numpy()
-    return a if discrete else np.clip(a, -1.0, 1.0).astype(np.float32)
-
-
-@torch.no_grad()
-def evaluate(agent: Agent, observer: Observer, args: Args, n: int, drop: str, seed: int, dev):
-    """n episodes with the greedy action (arg-max / Gaussian mean) and ``drop`` applied: per-episode
-    returns and success counts."""
-    envs_ = make_envs(args, n)
-    obs, _ = envs_.reset(seed=seed)
-    stack = FrameStack(args.frame_stack)
-    x = stack.reset(observer(obs, drop, dev))
-    returns, successes, alive = np.zeros(n), np.zeros(n), np.ones(n, bool)
-    while alive.any():
-        obs, r, term, trunc, info = envs_.step(env_action(agent.act_greedy(x), agent.discrete))
-        returns += r * alive
-        successes += step_success(info, n) * alive
-        alive &= ~(term | trunc)
-        x = stack.push(observer(obs, drop, dev))
-    envs_.close()
-    return returns, successes
-
-
-# Settings that may differ between the parts of one run (how long it runs, how it reports, where its files
-# are); every other setting defines the run, and --resume refuses a change to any of them.
-MAY_CHANGE = set(
-    "total_steps stop_at_criterion eval_episodes save_every device torch_threads resume overwrite"
-    " checkpoint checkpoint_dir vae_checkpoint gw_checkpoint exp_name eval_only drop".split()
-)
-# Settings an evaluation must share with the agent it loads (they shape its networks or inputs).
-EVAL_KEYS = ("task", "variant", "frame_stack", "hidden")
-
-
-def load_agent_checkpoint(path: Path, args: Args, frozen: dict) -> dict:
-    """The PPO checkpoint at ``path``, checked against this command: same env, task and variant, the
-    frozen weights it was trained on, and (``--resume``) every setting that defines the run."""
-    train = f"python ppo_variants.py --env {args.env} --variant {args.variant}"
-    if not path.is_file():
-        raise UsageError(f"no agent checkpoint at {path}; train one with `{train}`")
-    ckpt = read_checkpoint(path, train)
-    if ckpt.get("kind") != "ppo":
-        raise UsageError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected a ppo agent")
-    bad = non_finite({k: ckpt[k] for k in ("agent", "replay") if k in ckpt})
-    if bad:
-        raise UsageError(
-            f"{path} holds non-finite values ({bad}): it is no state to continue or evaluate; go back to a "
-            "copy saved earlier or train again"
-        )
-    if ckpt.get("env") != args.env:
-        raise UsageError(f"{path} is an agent for env {ckpt.get('env')!r}, but --env is {args.env!r}")
-    saved, now = ckpt["args"], asdict(args)
-    if args.env == "simple_shapes":
-        now["task"] = saved.get("task", now["task"])  # Simple Shapes has no task
-    changed = setting_changes(saved, now, EVAL_KEYS)
-    if changed:
-        raise UsageError(f"{path} was trained with {' '.join(changed)}; pass {' '.join(changed)}")
-    if abs(ckpt["fingerprint"] - frozen["fingerprint"]) > 1e-6 * max(1.0, abs(frozen["fingerprint"])):
-        raise UsageError(f"{path} was trained on other frozen weights ({', '.join(ckpt['frozen_paths'])})")
-    changed = setting_changes(saved, now, [k for k in now if k not in MAY_CHANGE]) if args.resume else []
-    if changed:
-        raise UsageError(
-            f"{path} was made with {' '.join(changed)}, which differ from this command: give the same "
-            "settings to continue that run, or start a separate one (another --exp-name or --seed)"
-        )
-    if args.resume:
-        check_unrecorded(path, saved, args, MAY_CHANGE)
-    return ckpt
-
-
-def check_settings(args: Args) -> None:
-    """Every numeric flag in range, and flags that only make sense together, before anything runs."""
-    for flag, value in vars(args).items():  # inf and nan would pass every range check below
-        if isinstance(value, float):
-            require(math.isfinite(value), flag, value, "must be a finite number")
-    check_device(args.device)
-    at_least_1 = "total_steps num_envs num_steps update_epochs minibatch_size frame_stack hidden"
-    for flag in (at_least_1 + " eval_episodes save_every smoothing").split():
-        require(getattr(args, flag) >= 1, flag, getattr(args, flag), "must be at least 1")
-    for flag in ("ent_coef", "vf_coef"):
-        require(getattr(args, flag) >= 0, flag, getattr(args, flag), "must not be negative")
-    for flag in ("learning_rate", "clip_coef", "max_grad_norm"):
-        require(getattr(args, flag) > 0, flag, getattr(args, flag), "must be positive")
-    require(0 < args.gamma <= 1, "gamma", args.gamma, "must be in (0, 1]")
-    require(0 <= args.gae_lambda <= 1, "gae_lambda", args.gae_lambda, "must be in [0, 1]")
-    rollout = args.num_envs * args.num_steps
-    rule = f"must fit in one rollout of --num-envs x --num-steps = {rollout:,} steps"
-    require(args.minibatch_size <= rollout, "minibatch_size", args.minibatch_size, rule)
-    rule = f"must be at least one agent step ({ACTION_REPEAT['robodesk']} frames)"
-    require(args.episode_length >= ACTION_REPEAT["robodesk"], "episode_length", args.episode_length, rule)
-    require(args.drop == "none" or args.eval_only, "drop", args.drop, "is for evaluation: add --eval-only")
-    for other in ("overwrite", "eval_only"):
-        if args.resume and getattr(args, other):
-            raise UsageError(f"--resume continues a run; it cannot go with --{other.replace('_', '-')}")
-    if args.env == "robodesk":
-        from envs.robodesk import TASKS
-
-        if args.task not in TASKS:
-            raise UsageError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
-
-
-def count_flops(fn):
-    """``fn()`` and the forward + backward FLOPs it took (torch.utils.flop_counter)."""
-    with FlopCounterMode(display=False) as counter:
-        out = fn()
-    return out, counter.get_total_flops()
-
-
-def ppo_loss(agent: Agent, mb: dict, args: Args):
-    """CleanRL's PPO loss on one minibatch: clipped surrogate, clipped value loss, entropy bonus."""
-    _, newlogp, entropy, newvalue = agent.get_action_and_value(mb["obs"], mb["actions"])
-    logratio = newlogp - mb["logprobs"]
-    ratio = logratio.exp()
-    with torch.no_grad():
-        approx_kl = ((ratio - 1) - logratio).mean()
-        clipfrac = ((ratio - 1.0).abs() > args.clip_coef).float().mean()
-    adv = mb["advantages"]
-    if args.norm_adv:
-        adv = (adv - adv.mean()) / (adv.std() + 1e-8)
-    pg_loss = torch.max(-adv * ratio, -adv * ratio.clamp(1 - args.clip_coef, 1 + args.clip_coef)).mean()
-    if args.clip_vloss:
-        v_clipped = mb["values"] + (newvalue - mb["values"]).clamp(-args.clip_coef, args.clip_coef)
-        v_loss = 0.5 * torch.max((newvalue - mb["returns"]) ** 2, (v_clipped - mb["returns"]) ** 2).mean()
-    else:
-        v_loss = 0.5 * ((newvalue - mb["returns"]) ** 2).mean()
-    ent = entropy.mean()
-    loss = pg_loss - args.ent_coef * ent + args.vf_coef * v_loss
-    terms = {"policy_loss": pg_loss, "value_loss": v_loss, "entropy": ent}
-    return loss, terms | {"approx_kl": approx_kl, "clipfrac": clipfrac}
-
-
-class RewardNormalizer:
-    """r / sqrt(Var[G] + eps), G the running discounted return of each environment, Var a running
-    variance over all of them (no mean subtraction, clipped to +-10, as VecNormalize)."""
-
-    def __init__(self, num_envs: int, gamma: float, enabled: bool):
-        self.gamma, self.enabled = gamma, enabled
-        self.ret = np.zeros(num_envs)
-        self.count, self.mean, self.var = 1e-4, 0.0, 1.0
-
-    def __call__(self, r: np.ndarray, done: np.ndarray) -> np.ndarray:
-        if not self.enabled:
-            return r
-        self.ret = self.ret * self.gamma + r
-        b_mean, b_var, b_n = self.ret.mean(), self.ret.var(), len(self.ret)
-        delta, total = b_mean - self.mean, self.count + b_n  # parallel mean/variance update (Chan et al.)
-        self.var = (self.var * self.count + b_var * b_n + delta**2 * self.count * b_n / total) / total
-        self.mean, self.count = self.mean + delta * b_n / total, total
-        self.ret[done] = 0.0
-        return np.clip(r / np.sqrt(self.var + 1e-8), -10.0, 10.0)
-
-    def state_dict(self) -> dict:
-        return {"ret": self.ret, "count": self.count, "mean": self.mean, "var": self.var}
-
-    def load_state_dict(self, s: dict) -> None:
-        self.ret, self.count, self.mean, self.var = s["ret"], s["count"], s["mean"], s["var"]
-
-
-def gae(rewards, values, next_value, terminated, args: Args) -> torch.Tensor:
-    """Generalised advantage estimation over a rollout (T, N). ``terminated[t]`` cuts the bootstrap
-    after step t; time-limit truncations were already folded into the rewards (see the rollout)."""
-    adv = torch.zeros_like(rewards)
-    last = torch.zeros_like(next_value)
-    for t in reversed(range(len(rewards))):
-        nxt = next_value if t == len(rewards) - 1 else values[t + 1]
-        nonterminal = 1.0 - terminated[t]
-        delta = rewards[t] + args.gamma * nxt * nonterminal - values[t]
-        last = delta + args.gamma * args.gae_lambda * nonterminal * last
-        adv[t] = last
-    return adv
-
-
-def ppo_update(agent: Agent, optimizer, mb: dict, args: Args, env_step: int) -> dict:
-    """One Adam step on the PPO loss of a minibatch (gradient norm clipped)."""
-    loss, terms = ppo_loss(agent, mb, args)
-    if not torch.isfinite(loss):
-        raise FloatingPointError(f"non-finite PPO loss at env step {env_step:,}")
-    optimizer.zero_grad(set_to_none=True)
-    loss.backward()
-    nn.utils.clip_grad_norm_(agent.parameters(), args.max_grad_norm)
-    optimizer.step()
-    return terms
-
-
-# --------------------------------------------------------------------------------------------------
-# The run: what the training loop carries, and the bookkeeping around CleanRL's PPO loop
-# --------------------------------------------------------------------------------------------------
-@dataclass
-class LoopState:
-    """Counters of the training loop (saved in the agent checkpoint, restored by --resume)."""
-
-    iteration: int = 0  # rollouts collected (and trained on) so far
-    env_steps: int = 0  # in the paper's unit (RoboDesk: simulator frames)
-    flops: int = 0  # forward + backward FLOPs of every minibatch update so far
-    flops_per_minibatch: int = 0  # counted on the first minibatch; every one has the same shapes
-    episodes: int = 0
-    criterion_step: int | None = None
-    recent: list = field(default_factory=list)  # the last --smoothing normalised training returns
-
-
-@dataclass
-class Run:
-    """One training run: its settings, networks, counters and outputs."""
-
-    args: Args
-    frozen: Observer  # the variant's frozen VAEs / GW (nothing for raw observations)
-    agent: Agent
-    optimizer: torch.optim.Optimizer
-    reward_norm: RewardNormalizer
-    state: LoopState
-    writer: SummaryWriter
-    agent_path: Path
-    pretrained: dict  # {"fingerprint": float, "paths": [...]} of the frozen weights
-    ref: tuple | None  # Simple Shapes returns of the random and the greedy policy (normalisation)
-    t0: float = field(default_factory=time.time)
-    steps0: int = 0
-
-    def normalise(self, ret: float) -> float:
-        return (ret - self.ref[0]) / (self.ref[1] - self.ref[0]) if self.ref else float("nan")
-
-
-def run_name(args: Args) -> str:
-    task = "" if args.env == "simple_shapes" else f"_{args.task}"
-    return f"{args.exp_name}_{args.variant}_{args.env}{task}_s{args.seed}"
-
-
-def start_run(
-    args: Args, observer: Observer, agent: Agent, frozen: dict, agent_path: Path, iterations: int
-) -> Run:
-    """Claim the outputs, build the optimizer, resume when asked, and print what runs."""
-    runs_dir = Path("runs") / run_name(args)
-    # Nothing of an earlier run is overwritten by accident, and the output folders take files now.
-    claim_outputs([agent_path, runs_dir], args.resume, args.overwrite, "ppo")
-    ensure_writable(agent_path.parent)
-    ensure_writable(runs_dir)
-    optimizer = torch.optim.Adam(agent.parameters(), lr=args.learning_rate, eps=1e-5)
-    state, reward_norm = LoopState(), RewardNormalizer(args.num_envs, args.gamma, args.norm_reward)
-    if args.resume:
-        ck = load_agent_checkpoint(agent_path, args, frozen)
-        agent.load_state_dict(ck["agent"])
-        optimizer.load_state_dict(ck["optimizer"])
-        state = LoopState(**ck["state"])
-        reward_norm.load_state_dict(ck["reward_norm"])
-        torch.set_rng_state(ck["torch_rng"])
-        np.random.set_state(ck["np_rng"])
-        print(f"[{TAG}] resuming {agent_path} at env step {state.env_steps:,}")
-    writer = SummaryWriter(str(runs_dir))
-    if not args.resume:
-        table = "\n".join(f"|{k}|{v}|" for k, v in vars(args).items())
-        writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + table)
-    ref = ss_reference_returns() if args.env == "simple_shapes" else None
-    run = Run(args, observer, agent, optimizer, reward_norm, state, writer, agent_path, frozen, ref)
-    run.steps0 = state.env_steps
-    n_params = sum(p.numel() for p in agent.parameters())
-    task = "" if args.env == "simple_shapes" else f"_{args.task}"
-    rollout = args.num_envs * args.num_steps
-    print(
-        f"[{TAG}] {args.variant} PPO on {args.env}{task}: {n_params:,} trainable parameters, "
-        f"{iterations} rollouts of {rollout:,} steps"
-    )
-    if ref:
-        print(f"[{TAG}] normalised return: random policy {ref[0]:.1f} -> 0, greedy policy {ref[1]:.1f} -> 1")
-    return run
-
-
-def save(run: Run) -> None:
-    """The resumable agent checkpoint: networks, optimizer, reward normaliser, counters, random states."""
-    a = run.args
-    atomic_save(
-        {
-            "kind": "ppo",
-            "env": a.env,
-            "task": a.task,
-            "variant": a.variant,
-            "args": asdict(a),
-            "fingerprint": run.pretrained["fingerprint"],
-            "frozen_paths": run.pretrained["paths"],
-            "agent": run.agent.state_dict(),
-            "optimizer": run.optimizer.state_dict(),
-            "state": asdict(run.state),
-            "reward_norm": run.reward_norm.state_dict(),
-            "torch_rng": torch.get_rng_state(),
-            "np_rng": np.random.get_state(),
-        },
-        run.agent_path,
-    )
-
-
 def log_episode(run: Run, ret: float, success: float) -> None:
     """A finished training episode: its return, the smoothed normalised return and the criterion."""
     s, a, step = run.state, run.args, run.state.env_steps
@@ -1104,87 +1303,6 @@ def log_episode(run: Run, ret: float, success: float) -> None:
         )
 
 
-def bootstrap_truncations(run: Run, r, info, term, trunc, before: dict) -> None:
-    """A time-limit truncation is not an end of the task: add to its reward the discounted value of its
-    final observation (stable-baselines3 does the same). ``before``: the stacks this step acted on."""
-    cut = np.flatnonzero(trunc & ~term)
-    if not len(cut):
-        return
-    dev = r.device
-    final = run.frozen(final_observations(info, cut), "none", dev)
-    x_final = {}
-    for k, v in final.items():  # the stack before this step's push, plus the final frame
-        x_final[k] = torch.cat([before[k][cut][:, v.shape[1] :], v], 1)
-    with torch.no_grad():
-        r[cut] += run.args.gamma * run.agent.get_value(x_final)
-
-
-def log_iteration(run: Run, stats: dict, flat: dict, total: int) -> None:
-    """The scalars and the progress line of one rollout and its update."""
-    s, w, step = run.state, run.writer, run.state.env_steps
-    var_y = flat["returns"].var()
-    explained = float("nan") if var_y == 0 else (1 - (flat["returns"] - flat["values"]).var() / var_y).item()
-    sps = (step - run.steps0) / max(time.time() - run.t0, 1e-9)
-    for k, v in stats.items():
-        w.add_scalar(f"losses/{k}", v.item(), step)
-    w.add_scalar("losses/explained_variance", explained, step)
-    w.add_scalar("charts/learning_rate", run.optimizer.param_groups[0]["lr"], step)
-    w.add_scalar("charts/SPS", sps, step)
-    w.add_scalar("charts/train_flops", s.flops, step)
-    smooth = np.mean(s.recent) if s.recent else float("nan")
-    print(
-        f"[{TAG}] step {step:,}/{total:,} {sps:.0f} steps/s | value loss {stats['value_loss'].item():.3f} "
-        f"entropy {stats['entropy'].item():.3f} smoothed normalised return {smooth:.3f}",
-        flush=True,
-    )
-
-
-def finish(run: Run) -> dict:
-    """Save the trained agent, then a final evaluation; the run's figures."""
-    a, s, dev = run.args, run.state, next(run.agent.parameters()).device
-    save(run)  # before the final evaluation, so Ctrl-C there loses nothing
-    try:
-        rets, succ = evaluate(run.agent, run.frozen, a, a.eval_episodes, "none", 10**6 + 1, dev)
-    except KeyboardInterrupt:
-        run.writer.close()
-        print(f"[{TAG}] interrupted in the final evaluation; the agent is saved at {run.agent_path}")
-        raise SystemExit(130) from None
-    run.writer.add_scalar("eval/episodic_return", rets.mean(), s.env_steps)
-    run.writer.close()
-    result = {
-        "env_steps": s.env_steps,
-        "train_flops": s.flops,
-        "criterion_step": s.criterion_step,
-        "final_return": float(rets.mean()),
-        "wall_s": time.time() - run.t0,
-    }
-    if run.ref:
-        result["final_normalised_return"] = run.normalise(float(rets.mean()))
-    if a.env == "robodesk":
-        result["final_success_count"] = float(succ.mean())
-    print(f"[{TAG}] done: {result}; agent checkpoint {run.agent_path}")
-    return result
-
-
-def evaluate_checkpoint(agent: Agent, observer: Observer, args: Args, frozen: dict, path: Path, dev) -> dict:
-    """--eval-only: the modality ablation of a trained agent (paper section "Modality Ablation
-    Robustness"): --eval-episodes fresh episodes with --drop removed."""
-    agent.load_state_dict(load_agent_checkpoint(path, args, frozen)["agent"])
-    rets, succ = evaluate(agent, observer, args, args.eval_episodes, args.drop, args.seed + 10**6, dev)
-    sem = rets.std(ddof=1) / math.sqrt(len(rets)) if len(rets) > 1 else 0.0
-    out = {"drop": args.drop, "return_mean": float(rets.mean()), "return_sem": float(sem)}
-    line = f"[eval] drop={args.drop}: return {rets.mean():.2f} ± {sem:.2f} (s.e.m., {len(rets)} episodes)"
-    if args.env == "simple_shapes":
-        lo, hi = ss_reference_returns()
-        out["normalised_return"] = (out["return_mean"] - lo) / (hi - lo)
-        line += f", normalised {out['normalised_return']:.3f}"
-    if args.env == "robodesk":
-        out["success_count"] = float(succ.mean())
-        line += f", success count {succ.mean():.1f}"
-    print(line)
-    return out
-
-
 def interrupted(run: Run) -> None:
     """Ctrl-C or SIGTERM: the step and its updates are done; save and exit 130."""
     save(run)
@@ -1197,126 +1315,17 @@ def interrupted(run: Run) -> None:
     raise SystemExit(130)  # the shell's code for a run ended by Ctrl-C
 
 
-# --------------------------------------------------------------------------------------------------
-# CleanRL's PPO loop
-# --------------------------------------------------------------------------------------------------
-def main(args: Args) -> dict:
-    check_settings(args)
-    if args.torch_threads:
-        torch.set_num_threads(args.torch_threads)
-    dev = torch.device(args.device)
-    observer, frozen = load_observer(args)
-    observer = observer.to(dev)
-    discrete = args.env == "simple_shapes"
-    n_actions = 7 if discrete else 5
-    random.seed(args.seed)
-    np.random.seed(args.seed)
-    torch.manual_seed(args.seed)
-    agent = Agent(observer, args, n_actions, discrete).to(dev)
-    default = Path(args.checkpoint_dir) / args.env / "agents" / f"{run_name(args)}.pt"
-    agent_path = Path(args.checkpoint) if args.checkpoint else default
-    if args.eval_only:
-        return evaluate_checkpoint(agent, observer, args, frozen, agent_path, dev)
-    batch_size = args.num_envs * args.num_steps  # agent steps per rollout
-    repeat = ACTION_REPEAT[args.env]  # env steps (the paper's unit, frames on RoboDesk) per agent step
-    num_iterations = -(-args.total_steps // (batch_size * repeat))  # whole rollouts, at least total_steps
-    if (steps := num_iterations * batch_size * repeat) != args.total_steps:
-        print(
-            f"--total-steps {args.total_steps:,} is no whole number of rollouts ({batch_size * repeat:,} env "
-            f"steps each): training {num_iterations:,} rollouts, {steps:,} steps"
-        )
-    run = start_run(args, observer, agent, frozen, agent_path, num_iterations)
-    state, optimizer = run.state, run.optimizer
-
-    # Rollout storage (T, N, ...); observations keep the stacked frames the policy saw.
-    envs_ = make_envs(args, args.num_envs)
-    obs, _ = envs_.reset(seed=args.seed + state.env_steps)
-    stack = FrameStack(args.frame_stack)
-    x = stack.reset(observer(obs, "none", dev))
-    store = {k: torch.zeros((args.num_steps, *v.shape), dtype=v.dtype, device=dev) for k, v in x.items()}
-    act_shape = () if discrete else (n_actions,)
-    act_dtype = torch.long if discrete else torch.float32
-    actions = torch.zeros((args.num_steps, args.num_envs, *act_shape), dtype=act_dtype, device=dev)
-    logprobs, rewards, values, terms = (
-        torch.zeros((args.num_steps, args.num_envs), device=dev) for _ in range(4)
-    )
-    ep_ret, ep_succ = np.zeros(args.num_envs), np.zeros(args.num_envs)
-    stats = {}
-    stop = StopRequest(TAG)  # Ctrl-C: the rollout and its update finish, then the run saves and exits
-    while state.iteration < num_iterations:
-        if args.stop_at_criterion and state.criterion_step is not None:
-            break
-        state.iteration += 1
-        if args.anneal_lr:
-            frac = 1.0 - (state.iteration - 1.0) / num_iterations
-            optimizer.param_groups[0]["lr"] = frac * args.learning_rate
-        # Rollout: num_steps steps of every environment with the current policy.
-        for t in range(args.num_steps):
-            for k in store:
-                store[k][t] = x[k]
-            with torch.no_grad():
-                action, logp, _, value = agent.get_action_and_value(x)
-            actions[t], logprobs[t], values[t] = action, logp, value
-            obs, r, term, trunc, info = envs_.step(env_action(action, discrete))
-            state.env_steps += args.num_envs * repeat
-            ep_ret += r
-            ep_succ += step_success(info, args.num_envs)
-            r = torch.as_tensor(run.reward_norm(r, term | trunc), dtype=torch.float32, device=dev)
-            frame = observer(obs, "none", dev)
-            x = stack.push(frame)
-            ends = np.flatnonzero(term | trunc)
-            if len(ends):
-                bootstrap_truncations(run, r, info, term, trunc, {k: v[t] for k, v in store.items()})
-                x = stack.reset(frame, ends)
-                for i in ends:
-                    log_episode(run, float(ep_ret[i]), float(ep_succ[i]))
-                ep_ret[ends], ep_succ[ends] = 0.0, 0.0
-            rewards[t] = r
-            terms[t] = torch.as_tensor(term | trunc, dtype=torch.float32, device=dev)
-
-        # Advantages (GAE), then update_epochs passes of minibatch updates over the rollout.
-        with torch.no_grad():
-            advantages = gae(rewards, values, agent.get_value(x), terms, args)
-            returns = advantages + values
-        flat = {
-            "obs": {k: v.reshape(batch_size, *v.shape[2:]) for k, v in store.items()},
-            "actions": actions.reshape(batch_size, *act_shape),
-            "logprobs": logprobs.reshape(-1),
-            "advantages": advantages.reshape(-1),
-            "returns": returns.reshape(-1),
-            "values": values.reshape(-1),
-        }
-        for _ in range(args.update_epochs):
-            perm = torch.randperm(batch_size, device=dev)
-            for start in range(0, batch_size - args.minibatch_size + 1, args.minibatch_size):
-                idx = perm[start : start + args.minibatch_size]
-                mb = {
-                    k: ({kk: vv[idx] for kk, vv in v.items()} if k == "obs" else v[idx])
-                    for k, v in flat.items()
-                }
-                try:
-                    if state.flops_per_minibatch == 0:  # same shapes every minibatch: count the first one
-                        stats, state.flops_per_minibatch = count_flops(
-                            lambda mb=mb: ppo_update(agent, optimizer, mb, args, state.env_steps)
-                        )
-                    else:
-                        stats = ppo_update(agent, optimizer, mb, args, state.env_steps)
-                except FloatingPointError as err:
-                    raise FloatingPointError(f"{err}; {last_good(agent_path)}") from err
-                state.flops += state.flops_per_minibatch
-            if args.target_kl is not None and stats["approx_kl"] > args.target_kl:
-                break
-
-        log_iteration(run, stats, flat, num_iterations * batch_size * repeat)
-        if state.iteration % args.save_every == 0 and not stop.requested:
-            save(run)
-        if stop.requested:
-            envs_.close()
-            stop.restore()
-            interrupted(run)
-    stop.restore()
-    envs_.close()
-    return finish(run)
+def cli(main, args_type) -> None:
+    """Run ``main`` on the parsed command line; a UsageError is printed as one line (exit code 2), and
+    Ctrl-C outside the places that save prints one line too (exit code 130)."""
+    try:
+        main(tyro.cli(args_type))
+    except UsageError as err:
+        print(f"error: {err}", file=sys.stderr, flush=True)
+        raise SystemExit(2) from None
+    except KeyboardInterrupt as err:
+        print(f"interrupted {err}".strip(), flush=True)
+        raise SystemExit(130) from None
 
 
 if __name__ == "__main__":

@@ -1,5 +1,6 @@
-"""Definitions the top-level scripts share on purpose. Each script carries its own copy (one file per
-algorithm, readable alone); these tests fail when one copy drifts from the others, and show the lines."""
+"""Code the top-level scripts share on purpose. Each script carries its own copy (one file per algorithm,
+readable alone): the four agent scripts end in the same fenced block of run infrastructure, and a few
+definitions above it recur in several scripts. These tests fail when a copy drifts, and show the lines."""
 
 import ast
 import difflib
@@ -13,20 +14,14 @@ PRETRAIN = "pretrain_vae_gw.py"
 AGENTS = (GW, E2E, DREAMER, PPO)
 DREAMERS = (GW, E2E, DREAMER)
 
+FENCE = "# ==== run infrastructure: the same in every agent script (tests/test_shared_code.py) ===="
+
 SHARED = {
-    # Safe runs (docs/safe_runs.md)
+    # Safe runs (docs/safe_runs.md): pre-training carries the agents' copies (their block holds them)
     **dict.fromkeys(
         "UsageError require atomic_save read_checkpoint ensure_writable setting_changes StopRequest"
         " check_device cli".split(),
-        (*AGENTS, PRETRAIN),
-    ),
-    # pre-training claims its outputs per stage
-    **dict.fromkeys("claim_outputs take_lock check_unrecorded".split(), AGENTS),
-    **dict.fromkeys("last_good non_finite".split(), AGENTS),
-    # Pre-trained checkpoints: the bundled Simple Shapes VAE + GW and the missing-checkpoint messages
-    **dict.fromkeys(
-        "BUNDLED ROBODESK_TASKS ROBODESK_PIPELINE pretrained_paths pretrain_command load_pretrained".split(),
-        AGENTS,
+        (GW, PRETRAIN),
     ),
     # Environments, steps and FLOPs
     **dict.fromkeys("ACTION_REPEAT make_envs step_success count_flops conv_block".split(), AGENTS),
@@ -38,8 +33,7 @@ SHARED = {
     "VisualVAE": (GW, E2E),
     # DreamerV3's pieces
     **dict.fromkeys("TwoHot symlog symexp lambda_returns action_for_env ReturnScale Dream".split(), DREAMERS),
-    # The run's bookkeeping: the loop counters, random actions before learning, episodes, Ctrl-C
-    **dict.fromkeys("log_episode interrupted".split(), AGENTS),
+    # Random actions before learning
     "random_actions": DREAMERS,
     "LoopState": (GW, DREAMER),
     # The GW-Dreamer world model and actor-critic (frozen GW and end-to-end variants)
@@ -50,6 +44,64 @@ SHARED = {
         (GW, E2E),
     ),
 }
+
+
+def fenced_block(text: str) -> str:
+    """Everything below the fence line (which must occur once)."""
+    if text.count(FENCE) != 1:
+        raise ValueError(f"the fence line occurs {text.count(FENCE)} times, not once")
+    return text.split(FENCE, 1)[1]
+
+
+def block_drift(scripts: tuple[str, ...] = AGENTS, root=ROOT) -> str:
+    """'' when every script ends in the same fenced block; else the first difference, as a unified diff."""
+    blocks = {s: fenced_block((root / s).read_text()) for s in scripts}
+    first = scripts[0]
+    for other in scripts[1:]:
+        diff = difflib.unified_diff(
+            blocks[first].splitlines(), blocks[other].splitlines(), first, other, lineterm="", n=0
+        )
+        diff = "\n".join(diff)
+        if diff:
+            return f"the run-infrastructure block has drifted between {first} and {other}:\n{diff}"
+    return ""
+
+
+def test_every_agent_script_ends_in_the_same_run_infrastructure_block():
+    problem = block_drift()
+    assert not problem, problem
+
+
+def test_the_block_is_the_infrastructure_and_the_method_stays_above_it():
+    """The block holds the safe-run and pre-trained-lookup code and the CLI entry, no network or loss;
+    main() comes directly after the update it calls (the method first, as the paper's algorithm box)."""
+    for script in AGENTS:
+        text = (ROOT / script).read_text()
+        block = definitions(fenced_block(text))
+        for name in ("atomic_save", "claim_outputs", "load_pretrained", "StopRequest", "cli", "log_episode"):
+            assert name in block, (script, name)
+        above = definitions(text.split(FENCE)[0])
+        assert "main" in above and not set(above) & set(block), script
+        names = list(above)
+        update = "ppo_update" if script == PPO else "train_update"
+        assert names.index("main") > names.index(update), script
+        assert fenced_block(text).rstrip().endswith("cli(main, Args)"), script
+
+
+def test_the_block_check_sees_a_changed_line(tmp_path):
+    for s in AGENTS:
+        (tmp_path / s).write_text((ROOT / s).read_text())
+    assert block_drift(AGENTS, tmp_path) == ""
+    text = (tmp_path / PPO).read_text()
+    (tmp_path / PPO).write_text(text.replace("def last_good(path", "def last_good(p", 1))
+    problem = block_drift(AGENTS, tmp_path)
+    assert problem.startswith(
+        "the run-infrastructure block has drifted between gw_dreamer.py and ppo_variants"
+    )
+    assert "-def last_good(path" in problem and "+def last_good(p" in problem
+    (tmp_path / PPO).write_text(text.replace(FENCE, "# the fence, edited"))
+    with pytest.raises(ValueError, match="occurs 0 times"):
+        block_drift(AGENTS, tmp_path)
 
 
 @functools.cache
