@@ -770,35 +770,20 @@ def load_agent_checkpoint(path: Path, args: Args, frozen: dict) -> dict:
     return ckpt
 
 
-def check_settings(args: Args) -> None:
-    """Every numeric flag in range, and flags that only make sense together, before anything runs."""
-    for flag, value in vars(args).items():  # inf and nan would pass every range check below
-        if isinstance(value, float):
-            require(math.isfinite(value), flag, value, "must be a finite number")
-    check_device(args.device)
-    at_least_1 = "total_steps num_envs num_steps update_epochs minibatch_size frame_stack hidden"
-    for flag in (at_least_1 + " eval_episodes save_every smoothing").split():
-        require(getattr(args, flag) >= 1, flag, getattr(args, flag), "must be at least 1")
-    for flag in ("ent_coef", "vf_coef"):
-        require(getattr(args, flag) >= 0, flag, getattr(args, flag), "must not be negative")
-    for flag in ("learning_rate", "clip_coef", "max_grad_norm"):
-        require(getattr(args, flag) > 0, flag, getattr(args, flag), "must be positive")
-    require(0 < args.gamma <= 1, "gamma", args.gamma, "must be in (0, 1]")
-    require(0 <= args.gae_lambda <= 1, "gae_lambda", args.gae_lambda, "must be in [0, 1]")
+# Ranges of this script's flags (check_settings, below the fence, adds the flags every agent has).
+RANGES = {
+    ">= 1": "num_steps update_epochs minibatch_size frame_stack hidden",
+    ">= 0": "ent_coef vf_coef",
+    "> 0": "learning_rate clip_coef max_grad_norm",
+    "[0, 1]": "gae_lambda",
+}
+
+
+def script_checks(args: Args) -> None:
+    """A minibatch fits in one rollout."""
     rollout = args.num_envs * args.num_steps
     rule = f"must fit in one rollout of --num-envs x --num-steps = {rollout:,} steps"
     require(args.minibatch_size <= rollout, "minibatch_size", args.minibatch_size, rule)
-    rule = f"must be at least one agent step ({ACTION_REPEAT['robodesk']} frames)"
-    require(args.episode_length >= ACTION_REPEAT["robodesk"], "episode_length", args.episode_length, rule)
-    require(args.drop == "none" or args.eval_only, "drop", args.drop, "is for evaluation: add --eval-only")
-    for other in ("overwrite", "eval_only"):
-        if args.resume and getattr(args, other):
-            raise UsageError(f"--resume continues a run; it cannot go with --{other.replace('_', '-')}")
-    if args.env == "robodesk":
-        from envs.robodesk import TASKS
-
-        if args.task not in TASKS:
-            raise UsageError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -1241,6 +1226,50 @@ def setting_changes(saved: dict, now: dict, keys) -> list[str]:
         value = " ".join(map(str, saved[k])) if isinstance(saved[k], (list, tuple)) else saved[k]
         out.append(f"--{k.replace('_', '-')} {value}")
     return out
+
+
+# What each range rule of RANGES (above the fence) demands of a flag's value.
+RULES = {
+    ">= 1": (lambda v: v >= 1, "must be at least 1"),
+    ">= 2": (lambda v: v >= 2, "must be at least 2"),
+    ">= 0": (lambda v: v >= 0, "must not be negative"),
+    "> 0": (lambda v: v > 0, "must be positive"),
+    "(0, 1]": (lambda v: 0 < v <= 1, "must be in (0, 1]"),
+    "[0, 1]": (lambda v: 0 <= v <= 1, "must be in [0, 1]"),
+}
+
+
+def check_settings(args) -> None:
+    """Every flag in range and flags that only make sense together, before anything runs: the flags every
+    agent has, this script's RANGES and its own rules (script_checks)."""
+    for flag, value in vars(args).items():  # inf and nan would pass every range check below
+        if isinstance(value, float):
+            require(math.isfinite(value), flag, value, "must be a finite number")
+    check_device(args.device)
+    ranges = {">= 1": "total_steps num_envs eval_episodes save_every smoothing", ">= 0": "seed torch_threads"}
+    ranges["(0, 1]"] = "gamma"
+    for rule, flags in [*ranges.items(), *RANGES.items()]:
+        ok, message = RULES[rule]
+        for flag in flags.split():
+            require(ok(getattr(args, flag)), flag, getattr(args, flag), message)
+    rule = f"must be at least one agent step ({ACTION_REPEAT['robodesk']} frames)"
+    require(args.episode_length >= ACTION_REPEAT["robodesk"], "episode_length", args.episode_length, rule)
+    require(args.drop == "none" or args.eval_only, "drop", args.drop, "is for evaluation: add --eval-only")
+    for other in ("overwrite", "eval_only"):
+        if args.resume and getattr(args, other):
+            raise UsageError(f"--resume continues a run; it cannot go with --{other.replace('_', '-')}")
+    if args.env == "robodesk":
+        from envs.robodesk import TASKS
+        from envs.robodesk_experts import EXPERTS
+
+        if args.task not in TASKS:
+            raise UsageError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
+        if args.stop_at_criterion and args.task not in EXPERTS:
+            raise UsageError(
+                f"--stop-at-criterion: {args.task} has no scripted expert, so its returns are not "
+                "normalised and the run has no criterion to stop at"
+            )
+    script_checks(args)
 
 
 def last_good(path: Path) -> str:

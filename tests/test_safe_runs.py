@@ -371,6 +371,15 @@ BAD_FLAGS = [
     ("gw_dreamer_e2e.py", ["--fusion-temperature", "0"], "--fusion-temperature 0.0: must be positive"),
     ("gw_dreamer_e2e.py", ["--contrastive-temperature", "-1"], "--contrastive-temperature -1.0: must be"),
     ("gw_dreamer_e2e.py", ["--gw-weight-decay", "-1"], "--gw-weight-decay -1.0: must not be negative"),
+    ("dreamer_baseline.py", ["--seed", "-1"], "--seed -1: must not be negative"),
+    ("ppo_variants.py", ["--torch-threads", "-2"], "--torch-threads -2: must not be negative"),
+    ("gw_dreamer_e2e.py", ["--smoothing", "0"], "--smoothing 0: must be at least 1"),
+    ("ppo_variants.py", ["--gae-lambda", "1.5"], "--gae-lambda 1.5: must be in [0, 1]"),
+    (
+        "gw_dreamer.py",
+        ["--env", "robodesk", "--task", "stack", "--stop-at-criterion"],
+        "--stop-at-criterion: stack has no scripted expert",
+    ),
     *(
         (s, ["--device", "cuda:99"], "--device cuda:99: this torch cannot use it")
         for s in (*AGENT_SCRIPTS, "pretrain_vae_gw.py")
