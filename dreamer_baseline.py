@@ -168,6 +168,9 @@ class Args:
     """environment steps between TensorBoard scalars and progress lines"""
     save_every: int = 20_000
     """environment steps between resumable checkpoints"""
+    save_minutes: float = 15.0
+    """wall-clock minutes after which a resumable checkpoint is written even if --save-every steps have
+    not passed (a run stopped without warning loses at most this much)"""
     resume: bool = False
     """continue the run stored at --checkpoint (default: this run's agent checkpoint)"""
     overwrite: bool = False
@@ -1195,8 +1198,8 @@ def observer_fingerprint(observer: Observer) -> float:
 # are); every other setting defines the run, and --resume refuses a change to any of them.
 MAY_CHANGE = set(
     "total_steps stop_at_criterion eval_every eval_episodes log_every save_every video_every device"
-    " torch_threads resume overwrite checkpoint checkpoint_dir vae_checkpoint exp_name eval_only drop"
-    " compile".split()
+    " save_minutes torch_threads resume overwrite checkpoint checkpoint_dir vae_checkpoint exp_name eval_only"
+    " drop compile".split()
 )
 
 
@@ -1255,7 +1258,7 @@ RANGES = {
     ">= 1": "batch_size imag_horizon eval_every log_every deter hidden units cnn_depth layers classes",
     ">= 2": "batch_length",
     ">= 0": "learning_starts video_every entropy_coef kl_free kl_dyn kl_rep",
-    "> 0": "train_ratio wm_lr ac_lr",
+    "> 0": "save_minutes train_ratio wm_lr ac_lr",
     "[0, 1]": "lam unimix slow_critic_decay return_norm_decay",
 }
 
@@ -1305,6 +1308,7 @@ class Run:
     model: str  # "raw" (Dreamer) or "vae" (VAE-Dreamer)
     ref: tuple | None  # Simple Shapes returns of the random and the greedy policy (normalisation)
     t0: float = field(default_factory=time.time)
+    last_save: float = field(default_factory=time.time)
     steps0: int = 0
 
     def normalise(self, ret: float) -> float:
@@ -1379,6 +1383,7 @@ def save(run: Run) -> None:
     if a.compile and not all(torch.isfinite(p).all() for p in run.agent.parameters()):
         step = run.state.env_steps
         raise FloatingPointError(f"non-finite weights at env step {step:,}; {last_good(run.agent_path)}")
+    run.last_save = time.time()
     atomic_save(
         {
             "kind": "dreamer",
@@ -1441,8 +1446,8 @@ def bookkeeping(run: Run, logs: dict) -> None:
         strip = dream_filmstrip(run.agent, run.frozen, a, 16, seed=10**6)
         if strip is not None:
             w.add_image("dreams/real_top_imagined_bottom", strip, step, dataformats="HWC")
-    if step >= s.next_save:
-        s.next_save += a.save_every
+    if step >= s.next_save or time.time() - run.last_save >= 60 * a.save_minutes:
+        s.next_save += a.save_every if step >= s.next_save else 0
         save(run)
 
 

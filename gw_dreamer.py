@@ -1223,7 +1223,7 @@ def load_agent_checkpoint(path: Path, args: Args, fingerprint: float) -> dict:
 RANGES = {
     ">= 1": "batch_size batch_length imag_horizon eval_every log_every",
     ">= 0": "learning_starts video_every entropy_coef wm_z_coef wm_reward_coef wm_done_coef actor_mean_reg",
-    "> 0": "train_ratio wm_lr ac_lr",
+    "> 0": "save_minutes train_ratio wm_lr ac_lr",
     "[0, 1]": "lam slow_critic_decay return_norm_decay",
 }
 

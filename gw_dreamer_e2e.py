@@ -185,6 +185,9 @@ class Args:
     """environment steps between TensorBoard scalars and progress lines"""
     save_every: int = 10_000
     """environment steps between resumable checkpoints"""
+    save_minutes: float = 15.0
+    """wall-clock minutes after which a resumable checkpoint is written even if --save-every steps have
+    not passed (a run stopped without warning loses at most this much)"""
     resume: bool = False
     """continue the run stored at --checkpoint (default: this run's agent checkpoint)"""
     overwrite: bool = False
@@ -1243,7 +1246,7 @@ def vae_fingerprint(vaes: FrozenVAEs) -> float:
 # are); every other setting defines the run, and --resume refuses a change to any of them.
 MAY_CHANGE = set(
     "total_steps stop_at_criterion eval_every eval_episodes log_every save_every video_every device"
-    " torch_threads resume overwrite checkpoint checkpoint_dir vae_checkpoint exp_name"
+    " save_minutes torch_threads resume overwrite checkpoint checkpoint_dir vae_checkpoint exp_name"
     " eval_only drop compile".split()
 )
 
@@ -1302,7 +1305,7 @@ RANGES = {
     ">= 2": "gw_batch_size",  # it pairs samples
     ">= 0": "learning_starts video_every entropy_coef wm_z_coef wm_reward_coef wm_done_coef actor_mean_reg"
     " gw_updates gw_weight_decay",
-    "> 0": "train_ratio wm_lr ac_lr gw_cycle gw_lr_start gw_lr_max gw_lr_end fusion_temperature"
+    "> 0": "save_minutes train_ratio wm_lr ac_lr gw_cycle gw_lr_start gw_lr_max gw_lr_end fusion_temperature"
     " contrastive_temperature",
     "[0, 1]": "lam slow_critic_decay return_norm_decay",
 }
@@ -1377,6 +1380,7 @@ class Run:
     model: str  # "gw" (GW-Dreamer end to end) or "clip" (its CLIP-like variant)
     ref: tuple | None  # Simple Shapes returns of the random and the greedy policy (normalisation)
     t0: float = field(default_factory=time.time)
+    last_save: float = field(default_factory=time.time)
     steps0: int = 0
 
     def normalise(self, ret: float) -> float:
@@ -1445,6 +1449,7 @@ def save(run: Run) -> None:
     if a.compile and not all(torch.isfinite(p).all() for p in run.agent.parameters()):
         step = run.state.env_steps
         raise FloatingPointError(f"non-finite weights at env step {step:,}; {last_good(run.agent_path)}")
+    run.last_save = time.time()
     atomic_save(
         {
             "kind": "gw_dreamer_e2e",
@@ -1501,8 +1506,8 @@ def bookkeeping(run: Run, logs: dict) -> None:
         s.next_video += a.video_every or a.total_steps
         strip = dream_filmstrip(run.agent, run.frozen, a, 16, seed=10**6)
         w.add_image("dreams/real_top_imagined_bottom", strip, step, dataformats="HWC")
-    if step >= s.next_save:
-        s.next_save += a.save_every
+    if step >= s.next_save or time.time() - run.last_save >= 60 * a.save_minutes:
+        s.next_save += a.save_every if step >= s.next_save else 0
         save(run)
 
 

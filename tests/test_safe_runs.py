@@ -10,6 +10,8 @@ import signal
 import subprocess
 import sys
 import textwrap
+import time
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -24,6 +26,9 @@ from conftest import (
     run_script,
 )
 
+import dreamer_baseline as D
+import gw_dreamer as G
+import gw_dreamer_e2e as E
 import pretrain_vae_gw as P
 
 
@@ -606,3 +611,25 @@ def test_ppo_trains_at_least_the_steps_asked_in_whole_rollouts(pretrained, tmp_p
         in out.stdout
     )
     assert torch.load(tmp_path / "agent.pt", weights_only=False)["state"]["env_steps"] == 64
+
+
+@pytest.mark.parametrize("module", [G, E, D], ids=["gw_dreamer", "gw_dreamer_e2e", "dreamer_baseline"])
+def test_a_run_saves_after_save_minutes_of_wall_time_between_step_saves(module, monkeypatch):
+    """A checkpoint is written when --save-minutes of wall time have passed since the last one, even
+    before --save-every steps; the step schedule stays as it was. Fails if the wall-clock save is missing
+    or if it shifts the next step save."""
+    saved = []
+    monkeypatch.setattr(module, "save", lambda run: saved.append(run.state.env_steps))
+    args = SimpleNamespace(
+        env="simple_shapes", num_envs=1, log_every=10**9, save_every=1000, save_minutes=15.0
+    )
+    state = module.LoopState(env_steps=500, next_eval=10**9, next_save=1000, next_video=10**9)
+    run = SimpleNamespace(args=args, state=state, writer=None, last_save=time.time() - 14 * 60)
+    module.bookkeeping(run, {})
+    assert saved == []
+    run.last_save = time.time() - 16 * 60
+    module.bookkeeping(run, {})
+    assert saved == [500] and state.next_save == 1000
+    run.last_save, state.env_steps = time.time(), 1000
+    module.bookkeeping(run, {})
+    assert saved == [500, 1000] and state.next_save == 2000
