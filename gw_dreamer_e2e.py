@@ -1219,11 +1219,9 @@ class FrozenVAEs(nn.Module):
         return self.vae_v.decode(u_v)
 
 
-def load_vaes(
-    env: str, vae_path: Path, checkpoint_dir: str = "checkpoints", task: str = "push_green"
-) -> FrozenVAEs:
+def load_vaes(env: str, vae_path: Path, checkpoint_dir: str = "checkpoints") -> FrozenVAEs:
     """The frozen VAEs from pretrain_vae_gw.py's checkpoint, checked against ``env``."""
-    vae = load_pretrained(vae_path, "vae", env, "collect vae", checkpoint_dir, task)
+    vae = load_pretrained(vae_path, "vae", env, "collect vae", checkpoint_dir)
     try:
         return FrozenVAEs(env, vae)
     except RuntimeError as err:  # a state dict of other sizes
@@ -1390,7 +1388,7 @@ class Run:
 def load_frozen(args: Args, dev) -> tuple[FrozenVAEs, dict]:
     """The frozen VAEs this run reads (yours under --checkpoint-dir, else the bundled ones)."""
     paths = pretrained_paths(args.checkpoint_dir, args.env, {"vae.pt": args.vae_checkpoint})
-    return load_vaes(args.env, paths["vae.pt"], args.checkpoint_dir, args.task).to(dev), paths
+    return load_vaes(args.env, paths["vae.pt"], args.checkpoint_dir).to(dev), paths
 
 
 def run_name(args: Args, model: str) -> str:
@@ -1568,18 +1566,15 @@ def evaluate_checkpoint(agent: Agent, vaes: FrozenVAEs, args: Args, path: Path) 
 # --cpu-preset` ships in envs/pretrained/ so the main job runs on a fresh clone; checkpoints of your own
 # under --checkpoint-dir always win.
 BUNDLED = Path(__file__).resolve().parent / "envs" / "pretrained"
-ROBODESK_TASKS = "push_green open_slide open_drawer upright_block_off_table flat_block_in_bin"
 
 
-# The RoboDesk pipeline, at the CPU scale of docs/environments.md (times measured on a 2-core CPU) or at
-# the paper's scale (times of docs/pretrain_vae_gw.md: one CPU core collecting, one H100 training).
-ROBODESK_PIPELINE = """the RoboDesk agents read the frozen VAEs and GW of pretrain_vae_gw.py; make them first.
-  CPU scale (one GW for five tasks, fast images; docs/pretrain_vae_gw.md):
-    python pretrain_vae_gw.py --env robodesk --cpu-preset{cd}   # about 70 min on 2 cores
-    then this command with --cpu-preset
-  paper scale (GPU): python pretrain_vae_gw.py --env robodesk --task {task}{cd}
-    (2M samples: 11 h of collection on one core with --render-quality fast, 190 h faithful; then
-    the visual VAE 30 h, the attribute VAE 35 min and the GW 1.5 h on one H100)"""
+# What to run when the RoboDesk VAEs + GW are missing (the paper's scale and its hours:
+# docs/pretrain_vae_gw.md).
+ROBODESK_PIPELINE = (
+    "the RoboDesk agents read the frozen VAEs and GW of pretrain_vae_gw.py; make them with `python "
+    "pretrain_vae_gw.py --env robodesk --cpu-preset{cd}` (about 70 min on 2 cores), then train with "
+    "--cpu-preset; the paper's scale: docs/pretrain_vae_gw.md"
+)
 
 
 def pretrained_paths(checkpoint_dir: str, env: str, wanted: dict[str, str | None]) -> dict[str, Path]:
@@ -1614,7 +1609,6 @@ def load_pretrained(
     env: str,
     stages: str,
     checkpoint_dir: str = "checkpoints",
-    task: str = "push_green",
     extra: str = "",
 ) -> dict:
     """A checkpoint of pretrain_vae_gw.py, checked against ``kind`` and ``env``; when it is missing, the
@@ -1623,10 +1617,7 @@ def load_pretrained(
     if not path.is_file():
         if env == "robodesk":
             cd = "" if checkpoint_dir == "checkpoints" else f" --checkpoint-dir {checkpoint_dir}"
-            raise UsageError(
-                f"no {kind} checkpoint at {path}: "
-                + ROBODESK_PIPELINE.format(tasks=ROBODESK_TASKS, task=task, cd=cd)
-            )
+            raise UsageError(f"no {kind} checkpoint at {path}: " + ROBODESK_PIPELINE.format(cd=cd))
         raise UsageError(f"no {kind} checkpoint at {path}; make it with `{make}`")
     ckpt = read_checkpoint(path, make)
     if ckpt.get("kind") != kind:
