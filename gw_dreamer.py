@@ -113,8 +113,7 @@ class Args:
     wm_z_coef: float = 10.0
     """weight of the z_{t+1} MSE in L_WM. The paper gives L_WM as a weighted sum without its weights; at 1
     the reward term is 20-50x the z term and the world model's one-step z error stays as large as one
-    action's effect on z; 10 reached the Simple Shapes criterion in 10 of 10 seeds against 8 of 10 at 1
-    (docs/paper_readings.md, docs/experiments.md)"""
+    action's effect on z (the reading and its runs: docs/paper_readings.md)"""
     wm_reward_coef: float = 1.0
     """weight of the reward term in L_WM"""
     wm_done_coef: float = 1.0
