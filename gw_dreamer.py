@@ -1319,21 +1319,6 @@ def load_frozen(args: Args, dev) -> tuple[FrozenEncoder, dict]:
     return encoder.to(dev), paths
 
 
-def reference_returns(args: Args) -> tuple[float, float] | None:
-    """The returns that normalise this run's: 0 for a uniformly random policy, 1 for the scripted policy
-    (Simple Shapes: greedy; RoboDesk: the task's expert, measured once and cached beside the
-    checkpoints). None for a RoboDesk task without a scripted expert."""
-    if args.env == "simple_shapes":
-        return ss_reference_returns()
-    from envs.robodesk_experts import EXPERTS
-    from envs.robodesk_experts import reference_returns as rd_reference_returns
-
-    if args.task not in EXPERTS:
-        return None
-    cache = Path(args.checkpoint_dir) / "robodesk" / "reference_returns.json"
-    return rd_reference_returns(args.task, args.episode_length, cache=cache)
-
-
 def run_name(args: Args, model: str) -> str:
     task = "" if args.env == "simple_shapes" else f"_{args.task}"
     return f"{args.exp_name}_{model}_{args.env}{task}_s{args.seed}"
@@ -1384,11 +1369,7 @@ def start_run(args: Args, encoder: FrozenEncoder, agent: Agent, paths: dict, age
             f"[{TAG}] the GW was trained on expert data of {encoder.expert_tasks or 'no task'} "
             f"(and random data): {args.task} is {'a task it saw' if seen else 'zero-shot for it'}"
         )
-    if ref:
-        scripted = "greedy policy" if args.env == "simple_shapes" else f"scripted {args.task} expert"
-        print(f"[{TAG}] normalised return: random policy {ref[0]:.1f} -> 0, {scripted} {ref[1]:.1f} -> 1")
-    else:
-        print(f"[{TAG}] {args.task} has no scripted expert: returns are not normalised, no criterion")
+    print(f"[{TAG}] {describe_reference(ref, args)}")
     if args.env == "robodesk" and not args.cpu_preset and torch.device(args.device).type == "cpu":
         hours = updates_due(args.total_steps, args) * PAPER_SIZE_CPU_S / 3600
         print(
@@ -1847,6 +1828,29 @@ class StopRequest:
 
     def __exit__(self, *exc) -> None:
         self.restore()
+
+
+def reference_returns(args) -> tuple[float, float] | None:
+    """The returns that normalise this run's: 0 for a uniformly random policy, 1 for the scripted policy
+    (Simple Shapes: greedy; RoboDesk: the task's expert, measured once and cached beside the
+    checkpoints). None for a RoboDesk task without a scripted expert."""
+    if args.env == "simple_shapes":
+        return ss_reference_returns()
+    from envs.robodesk_experts import EXPERTS
+    from envs.robodesk_experts import reference_returns as rd_reference_returns
+
+    if args.task not in EXPERTS:
+        return None
+    cache = Path(args.checkpoint_dir) / "robodesk" / "reference_returns.json"
+    return rd_reference_returns(args.task, args.episode_length, cache=cache)
+
+
+def describe_reference(ref: tuple | None, args) -> str:
+    """The start line that says what the normalised return measures."""
+    if not ref:
+        return f"{args.task} has no scripted expert: returns are not normalised, no criterion"
+    scripted = "greedy policy" if args.env == "simple_shapes" else f"scripted {args.task} expert"
+    return f"normalised return: random policy {ref[0]:.1f} -> 0, {scripted} {ref[1]:.1f} -> 1"
 
 
 def log_episode(run: Run, ret: float, success: float) -> None:

@@ -53,6 +53,7 @@ def test_robodesk_cli_run_of_each_variant(pretrained_robodesk, variant):
     fast = "--render-quality fast --episode-length 80".split()
     log = run_script("ppo_variants.py", tmp, *env, *fast, *TINY, *more, timeout=600)
     assert f"{variant} PPO on robodesk_push_green" in log and "final_success_count" in log
+    assert "scripted push_green expert" in log and "final_normalised_return" in log
     ck = torch.load(agent_path(tmp, "robodesk", variant, "_push_green"), weights_only=False)
     # one rollout of 2 x 32 actions, counted in frames (4 per action, the paper's unit)
     assert ck["state"]["env_steps"] == 256 and "actor_logstd" in ck["agent"]  # Gaussian actions
