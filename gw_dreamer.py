@@ -1162,8 +1162,8 @@ MAY_CHANGE = set(
 EVAL_KEYS = ("task", "reward_loss", "cpu_preset")
 
 
-# Settings of agents trained by benchmarks/experiments/gw_dreamer_experiments.py (or by this script
-# before they moved there), at the values that make them this script's model.
+# Settings of agents trained by benchmarks/experiments/gw_dreamer_experiments.py, at the values that make
+# them this script's model.
 EXPERIMENT_KEYS = {"ac_input": "h", "heads_read_sg_z": False, "zero_init": False, "z_source": "gw"}
 
 

@@ -203,8 +203,8 @@ class Args:
 # At beta_attr 0.05 and a few thousand updates the attribute VAE kept 5 of its 10 latent dimensions and
 # lost the position (6.7 px error); beta_attr 0.005 with 4 updates per step keeps all of them.
 # 20,000 GW steps (3 min here) rather than 60,000 (10 min): GW-Dreamer at --entropy-coef 3e-3 reached its
-# return criterion in 4 of 6 seeds on the shorter GW (4 of 5 on the longer), and the 7 minutes saved are
-# what let those seeds finish within the 30 minutes, pre-training included (docs/experiments.md).
+# return criterion in 4 of 6 seeds on the shorter GW (4 of 5 on the longer), and the 7 minutes saved
+# bring pre-training and a seed's run within 30 minutes on 2 cores (docs/pretrain_vae_gw.md).
 CPU_PRESET = {}
 CPU_PRESET["simple_shapes"] = {
     "n_samples": 60_000,
