@@ -184,7 +184,7 @@ def rd_run(pretrained_robodesk):
 def test_robodesk_cli_runs_for_both_observations(rd_run):
     tmp, log, agent = rd_run
     assert "Dreamer 12m with custom widths on robodesk_push_green" in log and "final_success_count" in log
-    # normalised as GW-Dreamer's: 0 the random policy, 1 the scripted expert (fails on Simple Shapes only)
+    # normalised as GW-Dreamer's: 0 the random policy, 1 the task's scripted expert
     assert "scripted push_green expert" in log and "final_normalised_return" in log
     ck = torch.load(agent, weights_only=False)
     # one update per batch_size x batch_length / train_ratio = 2 x 8 / 16 = 1 action (4 frames)

@@ -53,18 +53,22 @@ def fenced_block(text: str) -> str:
     return text.split(FENCE, 1)[1]
 
 
-def block_drift(scripts: tuple[str, ...] = AGENTS, root=ROOT) -> str:
-    """'' when every script ends in the same fenced block; else the first difference, as a unified diff."""
-    blocks = {s: fenced_block((root / s).read_text()) for s in scripts}
-    first = scripts[0]
-    for other in scripts[1:]:
-        diff = difflib.unified_diff(
-            blocks[first].splitlines(), blocks[other].splitlines(), first, other, lineterm="", n=0
+def first_difference(copies: dict[str, str], what: str) -> str:
+    """'' when every script's copy is the same text; else the first that differs, as a unified diff."""
+    (first, text), *others = copies.items()
+    for other, copy in others:
+        diff = "\n".join(
+            difflib.unified_diff(text.splitlines(), copy.splitlines(), first, other, lineterm="", n=0)
         )
-        diff = "\n".join(diff)
         if diff:
-            return f"the run-infrastructure block has drifted between {first} and {other}:\n{diff}"
+            return f"{what} has drifted between {first} and {other}:\n{diff}"
     return ""
+
+
+def block_drift(scripts: tuple[str, ...] = AGENTS, root=ROOT) -> str:
+    """'' when every script ends in the same fenced block; else the first difference."""
+    blocks = {s: fenced_block((root / s).read_text()) for s in scripts}
+    return first_difference(blocks, "the run-infrastructure block")
 
 
 def test_every_agent_script_ends_in_the_same_run_infrastructure_block():
@@ -74,7 +78,7 @@ def test_every_agent_script_ends_in_the_same_run_infrastructure_block():
 
 def test_the_block_is_the_infrastructure_and_the_method_stays_above_it():
     """The block holds the safe-run and pre-trained-lookup code and the CLI entry, no network or loss;
-    main() comes directly after the update it calls (the method first, as the paper's algorithm box)."""
+    main() comes after the update it calls (the method first, as the paper's algorithm box)."""
     for script in AGENTS:
         text = (ROOT / script).read_text()
         block = definitions(fenced_block(text))
@@ -127,15 +131,7 @@ def drift(name: str, scripts: tuple[str, ...], root=ROOT) -> str:
     missing = [s for s, src in copies.items() if src is None]
     if missing:
         return f"{name} is missing from {missing}"
-    first = scripts[0]
-    for other in scripts[1:]:
-        diff = difflib.unified_diff(
-            copies[first].splitlines(), copies[other].splitlines(), first, other, lineterm="", n=0
-        )
-        diff = "\n".join(diff)
-        if diff:
-            return f"{name} has drifted between {first} and {other}:\n{diff}"
-    return ""
+    return first_difference(copies, name)
 
 
 @pytest.mark.parametrize("name", sorted(SHARED))
