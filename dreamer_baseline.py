@@ -669,7 +669,10 @@ def imagine(agent: Agent, deter: torch.Tensor, stoch: torch.Tensor, horizon: int
     with torch.set_grad_enabled(grad):
         feats, actions = [feat_of(deter, stoch)], []
         for _ in range(horizon):
-            a = agent.actor.act(feats[-1])
+            # The actor reads the dreamt state with its gradient stopped, as DreamerV3's policy(sg(s)):
+            # an action's gradient is that of the returns after it, never through the actor's reply to
+            # states its own earlier actions made (that path trains period-2 alternation on RoboDesk).
+            a = agent.actor.act(feats[-1].detach())
             deter, stoch = agent.rssm.img_step(deter, stoch, a)
             feats.append(feat_of(deter, stoch))
             actions.append(a)

@@ -608,7 +608,10 @@ def imagine(agent, h0: torch.Tensor, z0: torch.Tensor, horizon: int, grad: bool 
         feats, actions, rewards, conts = [agent.features(h0, z0)], [], [], []
         h, z = h0, z0
         for _ in range(horizon):
-            a = agent.actor.act(feats[-1])
+            # The actor reads the dreamt state with its gradient stopped, as DreamerV3's policy(sg(s)):
+            # an action's gradient is that of the returns after it, never through the actor's reply to
+            # states its own earlier actions made (that path trains period-2 alternation on RoboDesk).
+            a = agent.actor.act(feats[-1].detach())
             h = wm.step(h, z, a)
             z, r_out, d_logit = wm.heads(h)
             feats.append(agent.features(h, z))

@@ -97,6 +97,23 @@ def tiny_agent_args(module, pretrained, **kw):
     return module.Args(**(base | kw)).resolve()
 
 
+def assert_actions_read_dreamt_states_as_constants(imagine, agent, *starts) -> None:
+    """In a differentiable dream (dynamics backpropagation) an action reaches the later states, which the
+    rewards and values read, through the dreamt transitions; but no later action depends differentiably
+    on it through the state the actor reads (DreamerV3's policy(sg(s))). ``imagine(agent, *starts,
+    horizon, grad)`` is a script's dream."""
+    taken = []
+    act = type(agent.actor).act
+    agent.actor.act = lambda *a, **k: taken.append(act(agent.actor, *a, **k)) or taken[-1]
+    try:
+        dream = imagine(agent, *starts, 3, grad=True)
+    finally:
+        del agent.actor.act
+    (to_state,) = torch.autograd.grad(dream.feats[-1].sum(), taken[0], retain_graph=True)
+    assert to_state.abs().sum() > 0
+    assert torch.autograd.grad(taken[1].sum(), taken[0], allow_unused=True)[0] is None
+
+
 def assert_episodes_separated(replay: dict) -> None:
     """In a saved GW-Dreamer replay (streams not yet wrapped), every episode start but a stream's first
     entry follows an entry marked last, so no world-model transition crosses from one episode into the

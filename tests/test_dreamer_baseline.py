@@ -11,6 +11,7 @@ import pytest
 import torch
 from conftest import (
     DREAMER_SMALL,
+    assert_actions_read_dreamt_states_as_constants,
     interrupt_run,
     previous_layout,
     record_calls,
@@ -325,6 +326,8 @@ def test_imagination_gradients_follow_the_actor_gradient_mode(pretrained):
     # The critic loss sees detached features: no gradient into the world model.
     g_wm = torch.autograd.grad(loss_critic, agent.world_model_parameters(), allow_unused=True)
     assert all(g is None for g in g_wm)
+    # The actor reads each dreamt state as a constant (DreamerV3's policy(sg(s))).
+    assert_actions_read_dreamt_states_as_constants(D.imagine, agent, deter, stoch)
 
 
 def test_bad_input_is_explained(tmp_path, pretrained):

@@ -14,6 +14,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 from conftest import (
+    assert_actions_read_dreamt_states_as_constants,
     assert_episodes_separated,
     interrupt_run,
     previous_layout,
@@ -762,10 +763,13 @@ def continuous_agent() -> tuple[G.Agent, torch.Tensor, torch.Tensor]:
 
 def test_dynamics_backprop_gives_the_derivative_of_the_dreamt_return_in_the_actor_weights():
     """With --actor-grad dynamics (RoboDesk's default) the actor's gradient is the derivative of its loss,
-    -mean(w (R - v) / S), through the dream: it matches central finite differences of that loss in a
-    weight of the actor's mean (same noise, scale fixed at 1; constant critic and continuation, so that
-    the dreamt rewards carry the actions' effect). Fails if the dream runs under no_grad, if
-    actions are drawn without reparameterisation, or if the REINFORCE estimator is used instead."""
+    -mean(w (R - v) / S), through the dreamt transitions, with the actor reading each dreamt state as a
+    constant (DreamerV3's policy(sg(s))): it matches central finite differences of that loss in a weight
+    of the actor's mean, taken with the actor's inputs pinned to the unperturbed dream's states (same
+    noise, scale fixed at 1; constant critic and continuation, so that the dreamt rewards carry the
+    actions' effect). Fails if the dream runs under no_grad, if actions are drawn without
+    reparameterisation, if the REINFORCE estimator is used instead, or if the gradient also runs through
+    the actor's inputs."""
     agent, h0, z0 = continuous_agent()
     agent.return_scale.update = lambda r: torch.ones(1, dtype=torch.float64)
     agent.twohot.loss = lambda logits, y: logits[..., 0] * 0  # the critic's loss plays no part here
@@ -781,15 +785,33 @@ def test_dynamics_backprop_gives_the_derivative_of_the_dreamt_return_in_the_acto
 
     (grad,) = torch.autograd.grad(loss(True), weight)
     assert all(p.grad is None for p in agent.wm.parameters())
+    torch.manual_seed(5)
+    states = G.imagine(agent, h0, z0, 6).feats  # the dreamt states of the unperturbed weights
+
+    def pinned_loss() -> float:
+        """The loss with the actor reading the unperturbed dream's states, which sg(s) holds constant."""
+        inputs = iter(states)
+        agent.actor.act = lambda feats, mode=False: type(agent.actor).act(agent.actor, next(inputs), mode)
+        try:
+            return loss(False).item()
+        finally:
+            del agent.actor.act
+
     for j in range(3):
         with torch.no_grad():
             weight[0, j] += 1e-5
-            up = loss(False).item()
+            up = pinned_loss()
             weight[0, j] -= 2e-5
-            down = loss(False).item()
+            down = pinned_loss()
             weight[0, j] += 1e-5
         assert grad[0, j].item() == pytest.approx((up - down) / 2e-5, rel=1e-3, abs=1e-9)
     assert grad[0].abs().max() > 1e-6  # the return moves with the action
+
+
+def test_dream_actions_read_their_states_as_constants():
+    """Fails if the actor's reply to a dreamt state carries the gradient of the actions that made it."""
+    agent, h0, z0 = continuous_agent()
+    assert_actions_read_dreamt_states_as_constants(G.imagine, agent, h0, z0)
 
 
 def test_train_update_leaves_the_world_model_to_its_own_loss_under_dynamics_backprop():

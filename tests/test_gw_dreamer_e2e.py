@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import (
+    assert_actions_read_dreamt_states_as_constants,
     assert_episodes_separated,
     interrupt_run,
     previous_layout,
@@ -40,6 +41,14 @@ def ss_run(pretrained):
     more = "--total-steps 250 --eval-every 150 --save-every 150".split()
     log = run_script("gw_dreamer_e2e.py", tmp, *SS, str(tmp / "ck"), *TINY, *more)
     return tmp, log, tmp / "ck" / "simple_shapes" / "agents" / AGENT
+
+
+def test_dream_actions_read_their_states_as_constants():
+    """Fails if the actor's reply to a dreamt state carries the gradient of the actions that made it."""
+    torch.manual_seed(0)
+    agent = E.Agent("robodesk", "twohot", cpu_preset=True)
+    h0, z0 = torch.randn(6, agent.wm.hidden), torch.rand(6, E.ENV_SPECS["robodesk"]["z"]) * 2 - 1
+    assert_actions_read_dreamt_states_as_constants(E.imagine, agent, h0, z0)
 
 
 def test_simple_shapes_cli_run_trains_the_gw_saves_and_logs(ss_run):
