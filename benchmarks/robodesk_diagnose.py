@@ -4,7 +4,10 @@
    action bound, where its gradient vanishes and the policy can no longer change (docs/gw_dreamer.md,
    "RoboDesk on a CPU"). On the newest states of replayed sequences (the states dreams start from): the
    median and 90th percentile of |m|, the share of means with |tanh(m)| > 0.99, the mean action and std
-   per dimension, and the share of the last 2,000 stored actions at a bound.
+   per dimension, and the share of the last 2,000 stored actions at a bound. Alternation: the share of
+   consecutive stored steps whose x, y or z action reverses (a_t a_{t+1} < -0.25), per 10,000 frames of
+   the run; a policy that learnt a period-2 reply to its own last action (the actor differentiated
+   through the dreamt states it reads) pushes it from a few % to 10-40% while the arm stops moving.
 2. The world model's reward on the agent's own data: after 64 real steps of a replayed sequence, the
    next 20 rewards predicted one step ahead (real z read each step) and open loop (its own z fed back,
    as in a dream) with the actions that were taken, against the real rewards: mean |r_hat - r| at
@@ -64,6 +67,12 @@ def saturation(path: str, sequences: int, seed: int) -> dict:
     count = int(ck["replay"]["count"][0])
     stored = ck["replay"]["a"][0][:count][-2000:]
     out = open_loop_rewards(agent, ck["replay"], seed)
+    first = ck["replay"]["first"][0][:count]
+    actions = ck["replay"]["a"][0][:count]
+    flips = []  # per 2,500 agent steps (10,000 frames): consecutive x/y/z actions of opposite sign
+    for lo in range(0, count - 1, 2500):
+        a, keep = actions[lo : lo + 2501], first[lo + 1 : lo + 2501] == 0
+        flips.append(float(((a[:-1, :3] * a[1:, :3]) < -0.25)[keep].mean()))
     return out | {
         "env_steps": ck["state"]["env_steps"],
         "loss_z": float(terms["loss_z"]),
@@ -73,6 +82,7 @@ def saturation(path: str, sequences: int, seed: int) -> dict:
         "mean": mean.mean(0).numpy(),
         "std": std.mean(0).numpy(),
         "stored_at_bound": (np.abs(stored) >= 0.999).mean(0),
+        "reversals": np.array(flips),
     }
 
 
@@ -177,6 +187,10 @@ def main(args: Args) -> list[dict]:
             f"{100 * r['at_bound']:.0f}% of the means at the bound; mean {np.round(r['mean'], 2)}, "
             f"std {np.round(r['std'], 3)}; stored actions at a bound {np.round(r['stored_at_bound'], 2)}; "
             f"world-model z loss {r['loss_z']:.3f}"
+        )
+        print(
+            "  x/y/z actions reversed from one step to the next, per 10,000 frames (%): "
+            + " ".join(f"{100 * x:.0f}" for x in r["reversals"])
         )
         print(
             f"  rewards ({r['sequences']} sequences, real mean {r['reward_mean']:.2f} per agent step): "
