@@ -1818,6 +1818,7 @@ def finish(run) -> dict:
         raise SystemExit(130) from None
     if strip is not None:
         run.writer.add_image("dreams/real_top_imagined_bottom", strip, s.env_steps, dataformats="HWC")
+    run.writer.add_scalar("eval/episodic_return", rets.mean(), s.env_steps)
     run.writer.close()
     result = {"env_steps": s.env_steps, "agent_steps": s.env_steps // ACTION_REPEAT[a.env]}
     result |= {"updates": s.updates} if hasattr(s, "updates") else {}
