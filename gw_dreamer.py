@@ -794,7 +794,7 @@ def main(args: Args) -> dict:
     default = Path(args.checkpoint_dir) / args.env / "agents" / f"{run_name(args, model)}.pt"
     agent_path = Path(args.checkpoint) if args.checkpoint else default
     if args.eval_only:
-        return evaluate_checkpoint(agent, encoder, args, agent_path)
+        return evaluate_checkpoint(agent, encoder, args, agent_path, gw_fingerprint(encoder))
     # Initialize the world model, the actor-critic and the replay buffer (or continue a saved run).
     run = start_run(args, encoder, agent, paths, agent_path)
     state, replay, n_envs, repeat = run.state, run.replay, args.num_envs, ACTION_REPEAT[args.env]
@@ -1170,55 +1170,32 @@ EVAL_KEYS = ("task", "reward_loss", "cpu_preset")
 EXPERIMENT_KEYS = {"ac_input": "h", "heads_read_sg_z": False, "zero_init": False, "z_source": "gw"}
 
 
-def load_agent_checkpoint(path: Path, args: Args, fingerprint: float) -> dict:
-    """The agent checkpoint at ``path``, checked against this command: same env and task, the frozen
-    weights it was trained on, and (``--resume``) every setting that defines the run. A checkpoint of the
-    previous layout (return scale in the loop state) is converted on reading."""
-    train = f"python gw_dreamer.py --env {args.env}"
-    if not path.is_file():
-        raise UsageError(f"no agent checkpoint at {path}; train one with `{train}`")
-    ckpt = read_checkpoint(path, train)
-    if ckpt.get("kind") != "gw_dreamer":
-        raise UsageError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected a gw_dreamer agent")
-    bad = non_finite({k: ckpt[k] for k in ("agent", "replay") if k in ckpt})
-    if bad:
-        raise UsageError(
-            f"{path} holds non-finite values ({bad}): it is no state to continue or evaluate; go back to a "
-            "copy saved earlier or train again"
-        )
-    if ckpt.get("env") != args.env:
-        raise UsageError(f"{path} is an agent for env {ckpt.get('env')!r}, but --env is {args.env!r}")
-    if abs(ckpt["gw_fingerprint"] - fingerprint) > 1e-6 * max(1.0, abs(fingerprint)):
-        raise UsageError(
-            f"{path} was trained on other VAE/GW weights ({ckpt['vae_checkpoint']}, {ckpt['gw_checkpoint']})"
-        )
-    saved, now = EXPERIMENT_KEYS | ckpt["args"], asdict(args)
-    if args.env == "simple_shapes":
-        now["task"] = saved.get("task", now["task"])  # Simple Shapes has no task
-    experiment = setting_changes(saved, EXPERIMENT_KEYS | now, EXPERIMENT_KEYS)
-    if experiment:
-        raise UsageError(
-            f"{path} was trained with {' '.join(experiment)}, an experiment: use "
-            f"`python benchmarks/experiments/gw_dreamer_experiments.py {' '.join(experiment)} ...`"
-        )
-    changed = setting_changes(saved, now, EVAL_KEYS)
-    if changed:
-        raise UsageError(f"{path} was trained with {' '.join(changed)}; pass {' '.join(changed)}")
-    changed = setting_changes(saved, now, [k for k in now if k not in MAY_CHANGE]) if args.resume else []
-    if changed:
-        raise UsageError(
-            f"{path} was made with {' '.join(changed)}, which differ from this command: give the same "
-            "settings to continue that run, or start a separate one (another --exp-name or --seed)"
-        )
-    if args.resume:
-        check_unrecorded(path, saved, args, MAY_CHANGE)
-    if "return_scale.ema" not in ckpt["agent"]:  # the return scale was a float of the loop state
-        state = ckpt["state"]
-        ckpt["agent"]["return_scale.ema"] = torch.tensor(
-            [state.pop("return_scale", 0.0)], dtype=torch.float64
-        )
-        ckpt["agent"]["return_scale.count"] = torch.tensor([float(state["updates"])], dtype=torch.float64)
-    return ckpt
+# What the run infrastructure below the fence reads of this script.
+SCRIPT = {
+    "kind": "gw_dreamer",  # the kind recorded in its agent checkpoints
+    "train": "python gw_dreamer.py --env {env}",  # the command that trains one
+    "fingerprint": "gw_fingerprint",  # the checkpoint entry that identifies the frozen weights
+    "eval_keys": lambda args: EVAL_KEYS,
+    "experiments": EXPERIMENT_KEYS,
+    "video": lambda run: dream_filmstrip(run.agent, run.frozen, run.args, 16, seed=10**6),
+}
+
+
+def checkpoint_entries(run: Run) -> dict:
+    """What an agent checkpoint of this script holds besides its kind, env, task, settings, counters and
+    random states (never weights a non-finite --compile update has reached)."""
+    if run.args.compile and not all(torch.isfinite(p).all() for p in run.agent.parameters()):
+        step = run.state.env_steps
+        raise FloatingPointError(f"non-finite weights at env step {step:,}; {last_good(run.agent_path)}")
+    return {
+        "model": run.model,
+        "gw_checkpoint": str(run.pretrained["gw.pt"]),
+        "vae_checkpoint": str(run.pretrained["vae.pt"]),
+        "gw_fingerprint": gw_fingerprint(run.frozen),
+        "agent": run.agent.state_dict(),
+        "opts": {name: opt.state_dict() for name, opt in run.opts.items()},
+        "replay": run.replay.state_dict(),
+    }
 
 
 # Ranges of this script's flags (check_settings, below the fence, adds the flags every agent has).
@@ -1383,35 +1360,6 @@ def start_run(args: Args, encoder: FrozenEncoder, agent: Agent, paths: dict, age
     return run
 
 
-def save(run: Run) -> None:
-    """The resumable agent checkpoint: networks, optimizers, replay, counters and random states (never
-    weights a non-finite --compile update has reached)."""
-    a = run.args
-    if a.compile and not all(torch.isfinite(p).all() for p in run.agent.parameters()):
-        step = run.state.env_steps
-        raise FloatingPointError(f"non-finite weights at env step {step:,}; {last_good(run.agent_path)}")
-    run.last_save = time.time()
-    atomic_save(
-        {
-            "kind": "gw_dreamer",
-            "env": a.env,
-            "task": a.task,
-            "model": run.model,
-            "args": asdict(a),
-            "gw_checkpoint": str(run.pretrained["gw.pt"]),
-            "vae_checkpoint": str(run.pretrained["vae.pt"]),
-            "gw_fingerprint": gw_fingerprint(run.frozen),
-            "agent": run.agent.state_dict(),
-            "opts": {name: opt.state_dict() for name, opt in run.opts.items()},
-            "replay": run.replay.state_dict(),
-            "state": asdict(run.state),
-            "torch_rng": torch.get_rng_state(),
-            "np_rng": np.random.get_state(),
-        },
-        run.agent_path,
-    )
-
-
 def bookkeeping(run: Run, logs: dict) -> None:
     """What is due at this env step: scalars and a progress line, an evaluation, a dream video, a save."""
     a, s, w = run.args, run.state, run.writer
@@ -1450,56 +1398,6 @@ def bookkeeping(run: Run, logs: dict) -> None:
     if step >= s.next_save or time.time() - run.last_save >= 60 * a.save_minutes:
         s.next_save += a.save_every if step >= s.next_save else 0
         save(run)
-
-
-def finish(run: Run) -> dict:
-    """Save the trained agent, then a final evaluation and dream video; the run's figures."""
-    a, s = run.args, run.state
-    save(run)  # before the final evaluation, so Ctrl-C there loses nothing
-    try:
-        rets, succ = run_episodes(run.agent, run.frozen, a, a.eval_episodes, "none", seed=10**6 + 1)
-        strip = dream_filmstrip(run.agent, run.frozen, a, 16, seed=10**6)
-    except KeyboardInterrupt:
-        run.writer.close()
-        print(f"[{TAG}] interrupted in the final evaluation; the agent is saved at {run.agent_path}")
-        raise SystemExit(130) from None
-    run.writer.add_image("dreams/real_top_imagined_bottom", strip, s.env_steps, dataformats="HWC")
-    run.writer.close()
-    result = {
-        "env_steps": s.env_steps,
-        "agent_steps": s.env_steps // ACTION_REPEAT[a.env],
-        "updates": s.updates,
-        "train_flops": s.flops,
-        "criterion_step": s.criterion_step,
-        "final_return": float(rets.mean()),
-        "wall_s": time.time() - run.t0,
-    }
-    if run.ref:
-        result["final_normalised_return"] = run.normalise(float(rets.mean()))
-    if a.env == "robodesk":
-        result["final_success_count"] = float(succ.mean())
-    print(f"[{TAG}] done: {result}; agent checkpoint {run.agent_path}")
-    return result
-
-
-def evaluate_checkpoint(agent: Agent, encoder: FrozenEncoder, args: Args, path: Path) -> dict:
-    """--eval-only: the modality ablation of a trained agent (paper section "Modality Ablation
-    Robustness"): --eval-episodes fresh episodes with --drop removed."""
-    agent.load_state_dict(load_agent_checkpoint(path, args, gw_fingerprint(encoder))["agent"])
-    rets, succ = run_episodes(agent, encoder, args, args.eval_episodes, args.drop, seed=args.seed + 10**6)
-    sem = rets.std(ddof=1) / math.sqrt(len(rets)) if len(rets) > 1 else 0.0
-    out = {"drop": args.drop, "return_mean": float(rets.mean()), "return_sem": float(sem)}
-    line = f"[eval] drop={args.drop}: return {rets.mean():.2f} ± {sem:.2f} (s.e.m., {len(rets)} episodes)"
-    ref = reference_returns(args)
-    if ref:
-        out["normalised_return"] = (out["return_mean"] - ref[0]) / (ref[1] - ref[0])
-        line += f", normalised {out['normalised_return']:.3f}"
-    if args.env == "robodesk":
-        out["success_count"] = float(succ.mean())
-        succ_sem = succ.std(ddof=1) / math.sqrt(len(succ)) if len(succ) > 1 else 0.0
-        line += f", success count {succ.mean():.1f} ± {succ_sem:.1f}"
-    print(line)
-    return out
 
 
 # ==== run infrastructure: the same in every agent script (tests/test_shared_code.py) ====
@@ -1826,11 +1724,123 @@ class StopRequest:
             signal.signal(s, handler)
         self.previous = {}
 
-    def __enter__(self) -> StopRequest:
-        return self
 
-    def __exit__(self, *exc) -> None:
-        self.restore()
+# --------------------------------------------------------------------------------------------------
+# The agent checkpoint: written atomically with all a run needs to continue (the script's own entries:
+# checkpoint_entries), read back checked against the command (what differs per script: SCRIPT)
+# --------------------------------------------------------------------------------------------------
+def load_agent_checkpoint(path: Path, args, fingerprint: float) -> dict:
+    """The agent checkpoint at ``path``, checked against this command: made by this script for the same
+    env and task on the same frozen weights (``fingerprint``), with the settings an evaluation must
+    repeat, and (``--resume``) every setting that defines the run."""
+    kind, train = SCRIPT["kind"], SCRIPT["train"].format(**vars(args))
+    if not path.is_file():
+        raise UsageError(f"no agent checkpoint at {path}; train one with `{train}`")
+    ckpt = read_checkpoint(path, train)
+    if ckpt.get("kind") != kind:
+        raise UsageError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected a {kind} agent")
+    if "return_scale" in ckpt.get("state", {}):  # the layout in which the loop state held the return scale
+        raise UsageError(
+            f"{path} has the layout of an older version: convert it with `python "
+            f"benchmarks/experiments/convert_checkpoint.py {path}`"
+        )
+    bad = non_finite({k: ckpt[k] for k in ("agent", "replay") if k in ckpt})
+    if bad:
+        raise UsageError(
+            f"{path} holds non-finite values ({bad}): it is no state to continue or evaluate; go back to a "
+            "copy saved earlier or train again"
+        )
+    if ckpt.get("env") != args.env:
+        raise UsageError(f"{path} is an agent for env {ckpt.get('env')!r}, but --env is {args.env!r}")
+    experiments = SCRIPT.get("experiments", {})  # settings of benchmarks/experiments/, at their off value
+    saved, now = experiments | ckpt["args"], experiments | asdict(args)
+    if args.env == "simple_shapes":
+        now["task"] = saved.get("task", now["task"])  # Simple Shapes has no task
+    changed = setting_changes(saved, now, experiments)
+    if changed:
+        raise UsageError(
+            f"{path} was trained with {' '.join(changed)}, an experiment: use "
+            f"`python benchmarks/experiments/{kind}_experiments.py {' '.join(changed)} ...`"
+        )
+    changed = setting_changes(saved, now, SCRIPT["eval_keys"](args))
+    if changed:
+        raise UsageError(f"{path} was trained with {' '.join(changed)}; pass {' '.join(changed)}")
+    if abs(ckpt[SCRIPT["fingerprint"]] - fingerprint) > 1e-6 * max(1.0, abs(fingerprint)):
+        frozen = ckpt.get("frozen_paths") or [
+            ckpt[k] for k in ("vae_checkpoint", "gw_checkpoint") if ckpt.get(k)
+        ]
+        raise UsageError(f"{path} was trained on other frozen weights ({', '.join(map(str, frozen))})")
+    changed = setting_changes(saved, now, [k for k in now if k not in MAY_CHANGE]) if args.resume else []
+    if changed:
+        raise UsageError(
+            f"{path} was made with {' '.join(changed)}, which differ from this command: give the same "
+            "settings to continue that run, or start a separate one (another --exp-name or --seed)"
+        )
+    if args.resume:
+        check_unrecorded(path, saved, args, MAY_CHANGE)
+    return ckpt
+
+
+def save(run) -> None:
+    """The resumable agent checkpoint: this script's networks, optimizers and data (checkpoint_entries),
+    the loop counters and both random states; then what the script exports beside it."""
+    a, entries = run.args, checkpoint_entries(run)
+    run.last_save = time.time()
+    head = {"kind": SCRIPT["kind"], "env": a.env, "task": a.task, "args": asdict(a)}
+    rngs = {"torch_rng": torch.get_rng_state(), "np_rng": np.random.get_state()}
+    atomic_save(head | entries | {"state": asdict(run.state)} | rngs, run.agent_path)
+    if SCRIPT.get("after_save"):
+        SCRIPT["after_save"](run)
+
+
+def finish(run) -> dict:
+    """Save the trained agent, then a final evaluation (and dream video); the run's figures."""
+    a, s = run.args, run.state
+    save(run)  # before the final evaluation, so Ctrl-C there loses nothing
+    try:
+        rets, succ = run_episodes(run.agent, run.frozen, a, a.eval_episodes, "none", seed=10**6 + 1)
+        strip = SCRIPT["video"](run) if SCRIPT.get("video") else None
+    except KeyboardInterrupt:
+        run.writer.close()
+        print(f"[{TAG}] interrupted in the final evaluation; the agent is saved at {run.agent_path}")
+        raise SystemExit(130) from None
+    if strip is not None:
+        run.writer.add_image("dreams/real_top_imagined_bottom", strip, s.env_steps, dataformats="HWC")
+    run.writer.add_scalar("eval/episodic_return", rets.mean(), s.env_steps)
+    run.writer.close()
+    result = {"env_steps": s.env_steps, "agent_steps": s.env_steps // ACTION_REPEAT[a.env]}
+    result |= {"updates": s.updates} if hasattr(s, "updates") else {}
+    result |= {"train_flops": s.flops, "criterion_step": s.criterion_step, "final_return": float(rets.mean())}
+    result["wall_s"] = time.time() - run.t0
+    if run.ref:
+        result["final_normalised_return"] = run.normalise(float(rets.mean()))
+    if a.env == "robodesk":
+        result["final_success_count"] = float(succ.mean())
+    exports = "".join(
+        f", {what} {run.agent_path.with_suffix(x)}" for x, what in SCRIPT.get("exports", {}).items()
+    )
+    print(f"[{TAG}] done: {result}; agent checkpoint {run.agent_path}{exports}")
+    return result
+
+
+def evaluate_checkpoint(agent, frozen, args, path: Path, fingerprint: float) -> dict:
+    """--eval-only: the modality ablation of a trained agent (paper section "Modality Ablation
+    Robustness"): --eval-episodes fresh episodes with --drop removed."""
+    agent.load_state_dict(load_agent_checkpoint(path, args, fingerprint)["agent"])
+    rets, succ = run_episodes(agent, frozen, args, args.eval_episodes, args.drop, seed=args.seed + 10**6)
+    sem = rets.std(ddof=1) / math.sqrt(len(rets)) if len(rets) > 1 else 0.0
+    out = {"drop": args.drop, "return_mean": float(rets.mean()), "return_sem": float(sem)}
+    line = f"[eval] drop={args.drop}: return {rets.mean():.2f} ± {sem:.2f} (s.e.m., {len(rets)} episodes)"
+    ref = reference_returns(args)
+    if ref:
+        out["normalised_return"] = (out["return_mean"] - ref[0]) / (ref[1] - ref[0])
+        line += f", normalised {out['normalised_return']:.3f}"
+    if args.env == "robodesk":
+        out["success_count"] = float(succ.mean())
+        succ_sem = succ.std(ddof=1) / math.sqrt(len(succ)) if len(succ) > 1 else 0.0
+        line += f", success count {succ.mean():.1f} ± {succ_sem:.1f}"
+    print(line)
+    return out
 
 
 def reference_returns(args) -> tuple[float, float] | None:

@@ -348,7 +348,7 @@ def main(args: Args) -> dict:
     default = Path(args.checkpoint_dir) / args.env / "agents" / f"{run_name(args)}.pt"
     agent_path = Path(args.checkpoint) if args.checkpoint else default
     if args.eval_only:
-        return evaluate_checkpoint(agent, observer, args, frozen, agent_path, dev)
+        return evaluate_checkpoint(agent, observer, args, agent_path, frozen["fingerprint"])
     batch_size = args.num_envs * args.num_steps  # agent steps per rollout
     repeat = ACTION_REPEAT[args.env]  # env steps (the paper's unit, frames on RoboDesk) per agent step
     num_iterations = -(-args.total_steps // (batch_size * repeat))  # whole rollouts, at least total_steps
@@ -533,9 +533,10 @@ def env_action(action: torch.Tensor, discrete: bool) -> np.ndarray:
 
 
 @torch.no_grad()
-def evaluate(agent: Agent, observer: Observer, args: Args, n: int, drop: str, seed: int, dev):
+def run_episodes(agent: Agent, observer: Observer, args: Args, n: int, drop: str, seed: int):
     """n episodes with the greedy action (arg-max / Gaussian mean) and ``drop`` applied: per-episode
     returns and success counts."""
+    dev = next(agent.parameters()).device
     envs_ = make_envs(args, n)
     obs, _ = envs_.reset(seed=seed)
     stack = FrameStack(args.frame_stack)
@@ -741,40 +742,26 @@ MAY_CHANGE = set(
 EVAL_KEYS = ("task", "variant", "frame_stack", "hidden")
 
 
-def load_agent_checkpoint(path: Path, args: Args, frozen: dict) -> dict:
-    """The PPO checkpoint at ``path``, checked against this command: same env, task and variant, the
-    frozen weights it was trained on, and (``--resume``) every setting that defines the run."""
-    train = f"python ppo_variants.py --env {args.env} --variant {args.variant}"
-    if not path.is_file():
-        raise UsageError(f"no agent checkpoint at {path}; train one with `{train}`")
-    ckpt = read_checkpoint(path, train)
-    if ckpt.get("kind") != "ppo":
-        raise UsageError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected a ppo agent")
-    bad = non_finite({k: ckpt[k] for k in ("agent", "replay") if k in ckpt})
-    if bad:
-        raise UsageError(
-            f"{path} holds non-finite values ({bad}): it is no state to continue or evaluate; go back to a "
-            "copy saved earlier or train again"
-        )
-    if ckpt.get("env") != args.env:
-        raise UsageError(f"{path} is an agent for env {ckpt.get('env')!r}, but --env is {args.env!r}")
-    saved, now = ckpt["args"], asdict(args)
-    if args.env == "simple_shapes":
-        now["task"] = saved.get("task", now["task"])  # Simple Shapes has no task
-    changed = setting_changes(saved, now, EVAL_KEYS)
-    if changed:
-        raise UsageError(f"{path} was trained with {' '.join(changed)}; pass {' '.join(changed)}")
-    if abs(ckpt["fingerprint"] - frozen["fingerprint"]) > 1e-6 * max(1.0, abs(frozen["fingerprint"])):
-        raise UsageError(f"{path} was trained on other frozen weights ({', '.join(ckpt['frozen_paths'])})")
-    changed = setting_changes(saved, now, [k for k in now if k not in MAY_CHANGE]) if args.resume else []
-    if changed:
-        raise UsageError(
-            f"{path} was made with {' '.join(changed)}, which differ from this command: give the same "
-            "settings to continue that run, or start a separate one (another --exp-name or --seed)"
-        )
-    if args.resume:
-        check_unrecorded(path, saved, args, MAY_CHANGE)
-    return ckpt
+# What the run infrastructure below the fence reads of this script.
+SCRIPT = {
+    "kind": "ppo",  # the kind recorded in its agent checkpoints
+    "train": "python ppo_variants.py --env {env} --variant {variant}",  # the command that trains one
+    "fingerprint": "fingerprint",  # the checkpoint entry that identifies the frozen weights
+    "eval_keys": lambda args: EVAL_KEYS,
+}
+
+
+def checkpoint_entries(run: Run) -> dict:
+    """What an agent checkpoint of this script holds besides its kind, env, task, settings, counters and
+    random states."""
+    return {
+        "variant": run.args.variant,
+        "fingerprint": run.pretrained["fingerprint"],
+        "frozen_paths": run.pretrained["paths"],
+        "agent": run.agent.state_dict(),
+        "optimizer": run.optimizer.state_dict(),
+        "reward_norm": run.reward_norm.state_dict(),
+    }
 
 
 # Ranges of this script's flags (check_settings, below the fence, adds the flags every agent has).
@@ -824,6 +811,7 @@ class Run:
     pretrained: dict  # {"fingerprint": float, "paths": [...]} of the frozen weights
     ref: tuple | None  # Simple Shapes returns of the random and the greedy policy (normalisation)
     t0: float = field(default_factory=time.time)
+    last_save: float = field(default_factory=time.time)
     steps0: int = 0
 
     def normalise(self, ret: float) -> float:
@@ -847,7 +835,7 @@ def start_run(
     optimizer = torch.optim.Adam(agent.parameters(), lr=args.learning_rate, eps=1e-5)
     state, reward_norm = LoopState(), RewardNormalizer(args.num_envs, args.gamma, args.norm_reward)
     if args.resume:
-        ck = load_agent_checkpoint(agent_path, args, frozen)
+        ck = load_agent_checkpoint(agent_path, args, frozen["fingerprint"])
         agent.load_state_dict(ck["agent"])
         optimizer.load_state_dict(ck["optimizer"])
         state = LoopState(**ck["state"])
@@ -871,29 +859,6 @@ def start_run(
     )
     print(f"[{TAG}] {describe_reference(ref, args)}")
     return run
-
-
-def save(run: Run) -> None:
-    """The resumable agent checkpoint: networks, optimizer, reward normaliser, counters, random states."""
-    a = run.args
-    atomic_save(
-        {
-            "kind": "ppo",
-            "env": a.env,
-            "task": a.task,
-            "variant": a.variant,
-            "args": asdict(a),
-            "fingerprint": run.pretrained["fingerprint"],
-            "frozen_paths": run.pretrained["paths"],
-            "agent": run.agent.state_dict(),
-            "optimizer": run.optimizer.state_dict(),
-            "state": asdict(run.state),
-            "reward_norm": run.reward_norm.state_dict(),
-            "torch_rng": torch.get_rng_state(),
-            "np_rng": np.random.get_state(),
-        },
-        run.agent_path,
-    )
 
 
 def bootstrap_truncations(run: Run, r, info, term, trunc, before: dict) -> None:
@@ -929,52 +894,6 @@ def log_iteration(run: Run, stats: dict, flat: dict, total: int) -> None:
         f"entropy {stats['entropy'].item():.3f} smoothed normalised return {smooth:.3f}",
         flush=True,
     )
-
-
-def finish(run: Run) -> dict:
-    """Save the trained agent, then a final evaluation; the run's figures."""
-    a, s, dev = run.args, run.state, next(run.agent.parameters()).device
-    save(run)  # before the final evaluation, so Ctrl-C there loses nothing
-    try:
-        rets, succ = evaluate(run.agent, run.frozen, a, a.eval_episodes, "none", 10**6 + 1, dev)
-    except KeyboardInterrupt:
-        run.writer.close()
-        print(f"[{TAG}] interrupted in the final evaluation; the agent is saved at {run.agent_path}")
-        raise SystemExit(130) from None
-    run.writer.add_scalar("eval/episodic_return", rets.mean(), s.env_steps)
-    run.writer.close()
-    result = {
-        "env_steps": s.env_steps,
-        "train_flops": s.flops,
-        "criterion_step": s.criterion_step,
-        "final_return": float(rets.mean()),
-        "wall_s": time.time() - run.t0,
-    }
-    if run.ref:
-        result["final_normalised_return"] = run.normalise(float(rets.mean()))
-    if a.env == "robodesk":
-        result["final_success_count"] = float(succ.mean())
-    print(f"[{TAG}] done: {result}; agent checkpoint {run.agent_path}")
-    return result
-
-
-def evaluate_checkpoint(agent: Agent, observer: Observer, args: Args, frozen: dict, path: Path, dev) -> dict:
-    """--eval-only: the modality ablation of a trained agent (paper section "Modality Ablation
-    Robustness"): --eval-episodes fresh episodes with --drop removed."""
-    agent.load_state_dict(load_agent_checkpoint(path, args, frozen)["agent"])
-    rets, succ = evaluate(agent, observer, args, args.eval_episodes, args.drop, args.seed + 10**6, dev)
-    sem = rets.std(ddof=1) / math.sqrt(len(rets)) if len(rets) > 1 else 0.0
-    out = {"drop": args.drop, "return_mean": float(rets.mean()), "return_sem": float(sem)}
-    line = f"[eval] drop={args.drop}: return {rets.mean():.2f} ± {sem:.2f} (s.e.m., {len(rets)} episodes)"
-    ref = reference_returns(args)
-    if ref:
-        out["normalised_return"] = (out["return_mean"] - ref[0]) / (ref[1] - ref[0])
-        line += f", normalised {out['normalised_return']:.3f}"
-    if args.env == "robodesk":
-        out["success_count"] = float(succ.mean())
-        line += f", success count {succ.mean():.1f}"
-    print(line)
-    return out
 
 
 # ==== run infrastructure: the same in every agent script (tests/test_shared_code.py) ====
@@ -1301,11 +1220,123 @@ class StopRequest:
             signal.signal(s, handler)
         self.previous = {}
 
-    def __enter__(self) -> StopRequest:
-        return self
 
-    def __exit__(self, *exc) -> None:
-        self.restore()
+# --------------------------------------------------------------------------------------------------
+# The agent checkpoint: written atomically with all a run needs to continue (the script's own entries:
+# checkpoint_entries), read back checked against the command (what differs per script: SCRIPT)
+# --------------------------------------------------------------------------------------------------
+def load_agent_checkpoint(path: Path, args, fingerprint: float) -> dict:
+    """The agent checkpoint at ``path``, checked against this command: made by this script for the same
+    env and task on the same frozen weights (``fingerprint``), with the settings an evaluation must
+    repeat, and (``--resume``) every setting that defines the run."""
+    kind, train = SCRIPT["kind"], SCRIPT["train"].format(**vars(args))
+    if not path.is_file():
+        raise UsageError(f"no agent checkpoint at {path}; train one with `{train}`")
+    ckpt = read_checkpoint(path, train)
+    if ckpt.get("kind") != kind:
+        raise UsageError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected a {kind} agent")
+    if "return_scale" in ckpt.get("state", {}):  # the layout in which the loop state held the return scale
+        raise UsageError(
+            f"{path} has the layout of an older version: convert it with `python "
+            f"benchmarks/experiments/convert_checkpoint.py {path}`"
+        )
+    bad = non_finite({k: ckpt[k] for k in ("agent", "replay") if k in ckpt})
+    if bad:
+        raise UsageError(
+            f"{path} holds non-finite values ({bad}): it is no state to continue or evaluate; go back to a "
+            "copy saved earlier or train again"
+        )
+    if ckpt.get("env") != args.env:
+        raise UsageError(f"{path} is an agent for env {ckpt.get('env')!r}, but --env is {args.env!r}")
+    experiments = SCRIPT.get("experiments", {})  # settings of benchmarks/experiments/, at their off value
+    saved, now = experiments | ckpt["args"], experiments | asdict(args)
+    if args.env == "simple_shapes":
+        now["task"] = saved.get("task", now["task"])  # Simple Shapes has no task
+    changed = setting_changes(saved, now, experiments)
+    if changed:
+        raise UsageError(
+            f"{path} was trained with {' '.join(changed)}, an experiment: use "
+            f"`python benchmarks/experiments/{kind}_experiments.py {' '.join(changed)} ...`"
+        )
+    changed = setting_changes(saved, now, SCRIPT["eval_keys"](args))
+    if changed:
+        raise UsageError(f"{path} was trained with {' '.join(changed)}; pass {' '.join(changed)}")
+    if abs(ckpt[SCRIPT["fingerprint"]] - fingerprint) > 1e-6 * max(1.0, abs(fingerprint)):
+        frozen = ckpt.get("frozen_paths") or [
+            ckpt[k] for k in ("vae_checkpoint", "gw_checkpoint") if ckpt.get(k)
+        ]
+        raise UsageError(f"{path} was trained on other frozen weights ({', '.join(map(str, frozen))})")
+    changed = setting_changes(saved, now, [k for k in now if k not in MAY_CHANGE]) if args.resume else []
+    if changed:
+        raise UsageError(
+            f"{path} was made with {' '.join(changed)}, which differ from this command: give the same "
+            "settings to continue that run, or start a separate one (another --exp-name or --seed)"
+        )
+    if args.resume:
+        check_unrecorded(path, saved, args, MAY_CHANGE)
+    return ckpt
+
+
+def save(run) -> None:
+    """The resumable agent checkpoint: this script's networks, optimizers and data (checkpoint_entries),
+    the loop counters and both random states; then what the script exports beside it."""
+    a, entries = run.args, checkpoint_entries(run)
+    run.last_save = time.time()
+    head = {"kind": SCRIPT["kind"], "env": a.env, "task": a.task, "args": asdict(a)}
+    rngs = {"torch_rng": torch.get_rng_state(), "np_rng": np.random.get_state()}
+    atomic_save(head | entries | {"state": asdict(run.state)} | rngs, run.agent_path)
+    if SCRIPT.get("after_save"):
+        SCRIPT["after_save"](run)
+
+
+def finish(run) -> dict:
+    """Save the trained agent, then a final evaluation (and dream video); the run's figures."""
+    a, s = run.args, run.state
+    save(run)  # before the final evaluation, so Ctrl-C there loses nothing
+    try:
+        rets, succ = run_episodes(run.agent, run.frozen, a, a.eval_episodes, "none", seed=10**6 + 1)
+        strip = SCRIPT["video"](run) if SCRIPT.get("video") else None
+    except KeyboardInterrupt:
+        run.writer.close()
+        print(f"[{TAG}] interrupted in the final evaluation; the agent is saved at {run.agent_path}")
+        raise SystemExit(130) from None
+    if strip is not None:
+        run.writer.add_image("dreams/real_top_imagined_bottom", strip, s.env_steps, dataformats="HWC")
+    run.writer.add_scalar("eval/episodic_return", rets.mean(), s.env_steps)
+    run.writer.close()
+    result = {"env_steps": s.env_steps, "agent_steps": s.env_steps // ACTION_REPEAT[a.env]}
+    result |= {"updates": s.updates} if hasattr(s, "updates") else {}
+    result |= {"train_flops": s.flops, "criterion_step": s.criterion_step, "final_return": float(rets.mean())}
+    result["wall_s"] = time.time() - run.t0
+    if run.ref:
+        result["final_normalised_return"] = run.normalise(float(rets.mean()))
+    if a.env == "robodesk":
+        result["final_success_count"] = float(succ.mean())
+    exports = "".join(
+        f", {what} {run.agent_path.with_suffix(x)}" for x, what in SCRIPT.get("exports", {}).items()
+    )
+    print(f"[{TAG}] done: {result}; agent checkpoint {run.agent_path}{exports}")
+    return result
+
+
+def evaluate_checkpoint(agent, frozen, args, path: Path, fingerprint: float) -> dict:
+    """--eval-only: the modality ablation of a trained agent (paper section "Modality Ablation
+    Robustness"): --eval-episodes fresh episodes with --drop removed."""
+    agent.load_state_dict(load_agent_checkpoint(path, args, fingerprint)["agent"])
+    rets, succ = run_episodes(agent, frozen, args, args.eval_episodes, args.drop, seed=args.seed + 10**6)
+    sem = rets.std(ddof=1) / math.sqrt(len(rets)) if len(rets) > 1 else 0.0
+    out = {"drop": args.drop, "return_mean": float(rets.mean()), "return_sem": float(sem)}
+    line = f"[eval] drop={args.drop}: return {rets.mean():.2f} ± {sem:.2f} (s.e.m., {len(rets)} episodes)"
+    ref = reference_returns(args)
+    if ref:
+        out["normalised_return"] = (out["return_mean"] - ref[0]) / (ref[1] - ref[0])
+        line += f", normalised {out['normalised_return']:.3f}"
+    if args.env == "robodesk":
+        out["success_count"] = float(succ.mean())
+        succ_sem = succ.std(ddof=1) / math.sqrt(len(succ)) if len(succ) > 1 else 0.0
+        line += f", success count {succ.mean():.1f} ± {succ_sem:.1f}"
+    print(line)
+    return out
 
 
 def reference_returns(args) -> tuple[float, float] | None:

@@ -382,12 +382,6 @@ class StopRequest:
             signal.signal(s, handler)
         self.previous = {}
 
-    def __enter__(self) -> StopRequest:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.restore()
-
 
 def cli(main, args_type) -> None:
     """Run ``main`` on the parsed command line; a UsageError is printed as one line (exit code 2), and
@@ -1869,13 +1863,16 @@ def main(args: Args) -> None:
         table = "\n".join(f"|{k}|{v}|" for k, v in vars(args).items())
         writer = LazyWriter(f"runs/{run_name}", "|param|value|\n|-|-|\n" + table)
     t0 = time.time()
-    with StopRequest("pretrain") as stop:  # Ctrl-C: the stage saves what it has and the run exits 130
+    stop = StopRequest("pretrain")  # Ctrl-C: the stage saves what it has and the run exits 130
+    try:
         if "collect" in args.stages:
             collect(args, stop)
         if "vae" in args.stages:
             train_vae(args, writer, stop)
         if "gw" in args.stages:
             train_gw(args, writer, stop)
+    finally:
+        stop.restore()
     if writer is not None:
         writer.close()
         print(f"done in {(time.time() - t0) / 60:.1f} min")

@@ -134,6 +134,18 @@ def previous_layout(src: Path, dst: Path) -> None:
     torch.save(ck, dst)
 
 
+def refused_then_converted(run, old: Path) -> None:
+    """``run()`` refuses the previous-layout checkpoint ``old`` with the command that converts it; that
+    command (benchmarks/experiments/convert_checkpoint.py, through its CLI) converts it in place and
+    keeps the original as ``old.pt.old``."""
+    command = f"python benchmarks/experiments/convert_checkpoint.py {old}"
+    with pytest.raises(ValueError, match=re.escape(f"older version: convert it with `{command}`")):
+        run()
+    out = run_script("benchmarks/experiments/convert_checkpoint.py", old.parent, str(old))
+    assert "converted" in out and old.with_name(old.name + ".old").is_file()
+    assert "return_scale" not in torch.load(old, weights_only=False)["state"]
+
+
 def run_pretrain(tmp_path: Path, *extra: str) -> str:
     """pretrain_vae_gw.py with tiny settings, data in tmp_path/data and checkpoints in tmp_path/ck."""
     paths = ["--data-dir", str(tmp_path / "data"), "--checkpoint-dir", str(tmp_path / "ck")]

@@ -15,6 +15,7 @@ from conftest import (
     interrupt_run,
     previous_layout,
     record_calls,
+    refused_then_converted,
     run_pretrain,
     run_script,
     tiny_agent_args,
@@ -120,11 +121,16 @@ def test_eval_only_with_each_drop_and_size_mismatch(ss_run, pretrained):
         D.main(D.Args(eval_only=True, checkpoint=str(agent)))
 
 
-def test_a_checkpoint_of_the_previous_layout_still_evaluates(ss_run, pretrained, tmp_path):
+def test_a_checkpoint_of_the_previous_layout_is_refused_then_converted_and_evaluates(
+    ss_run, pretrained, tmp_path
+):
     """An agent saved with the return scale in the loop state (the layout before it became part of the
-    agent) evaluates to the same returns as the current layout."""
+    agent) is refused with the command that converts it; converted, it evaluates to the same returns as
+    the current layout."""
     _, _, agent = ss_run
     previous_layout(agent, tmp_path / "old.pt")
+    old = small_args(pretrained, eval_only=True, checkpoint=str(tmp_path / "old.pt"), eval_episodes=2)
+    refused_then_converted(lambda: D.main(old), tmp_path / "old.pt")
     paths = (agent, tmp_path / "old.pt")
     runs = [D.main(small_args(pretrained, eval_only=True, checkpoint=str(p), eval_episodes=2)) for p in paths]
     assert runs[0] == runs[1]

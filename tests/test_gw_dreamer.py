@@ -19,6 +19,7 @@ from conftest import (
     interrupt_run,
     previous_layout,
     record_calls,
+    refused_then_converted,
     run_cli,
     run_script,
     tiny_agent_args,
@@ -81,11 +82,12 @@ def test_resume_continues_the_saved_run(ss_run):
     assert_episodes_separated(ck["replay"])  # the episode cut by the save at 250 is closed
 
 
-def test_a_checkpoint_of_the_previous_layout_resumes_to_the_same_run(
+def test_a_checkpoint_of_the_previous_layout_is_refused_then_converted_and_resumes_to_the_same_run(
     ss_run, pretrained, tmp_path, monkeypatch
 ):
-    """Agents saved with the return scale in the loop state (before it moved into the agent) evaluate and
-    resume; the resumed run is the one the current layout gives, bit for bit."""
+    """Agents saved with the return scale in the loop state (before it moved into the agent) are refused
+    with the command that converts them; converted, they resume to the run the current layout gives, bit
+    for bit."""
     _, _, agent = ss_run
     monkeypatch.chdir(tmp_path)  # the runs/ folders
     now, old = tmp_path / "now.pt", tmp_path / "old.pt"
@@ -96,6 +98,9 @@ def test_a_checkpoint_of_the_previous_layout_resumes_to_the_same_run(
         total_steps=steps, resume=True, eval_episodes=1, eval_every=10**6, video_every=0, learning_starts=100
     )
     kw |= dict(train_ratio=10.0, imag_horizon=5, log_every=100)
+    refused_then_converted(
+        lambda: G.main(ss_args(pretrained, checkpoint=str(old), exp_name="old", **kw)), old
+    )
     for path in (now, old):
         G.main(ss_args(pretrained, checkpoint=str(path), exp_name=path.stem, **kw))
     a, b = (torch.load(p, weights_only=False) for p in (now, old))
@@ -114,7 +119,7 @@ def test_eval_only_with_each_drop(ss_run, pretrained):
         out = G.main(ss_args(pretrained, eval_only=True, checkpoint=str(agent), drop=drop, eval_episodes=3))
         assert out["drop"] == drop and math.isfinite(out["return_mean"]) and out["return_sem"] >= 0
     clip = str(pretrained[0] / "ck" / "simple_shapes" / "clip.pt")  # not the GW this agent was trained on
-    with pytest.raises(ValueError, match="trained on other VAE/GW weights"):
+    with pytest.raises(ValueError, match="trained on other frozen weights"):
         G.main(ss_args(pretrained, eval_only=True, checkpoint=str(agent), gw_checkpoint=clip))
 
 

@@ -14,6 +14,7 @@ from conftest import (
     interrupt_run,
     previous_layout,
     record_calls,
+    refused_then_converted,
     run_script,
     tiny_agent_args,
 )
@@ -118,15 +119,20 @@ def test_eval_only_with_each_drop_and_the_vae_check(ss_run, pretrained, tmp_path
     other = ss_args(
         pretrained, eval_only=True, checkpoint=str(agent), vae_checkpoint=str(tmp_path / "other_vae.pt")
     )
-    with pytest.raises(ValueError, match="trained on other VAE weights"):
+    with pytest.raises(ValueError, match="trained on other frozen weights"):
         E.main(other)
 
 
-def test_a_checkpoint_of_the_previous_layout_still_evaluates(ss_run, pretrained, tmp_path):
+def test_a_checkpoint_of_the_previous_layout_is_refused_then_converted_and_evaluates(
+    ss_run, pretrained, tmp_path
+):
     """An agent saved with the return scale in the loop state (the layout before it became part of the
-    agent) evaluates to the same returns as the current layout."""
+    agent) is refused with the command that converts it; converted, it evaluates to the same returns as
+    the current layout."""
     _, _, agent = ss_run
     previous_layout(agent, tmp_path / "old.pt")
+    old = ss_args(pretrained, eval_only=True, checkpoint=str(tmp_path / "old.pt"), eval_episodes=2)
+    refused_then_converted(lambda: E.main(old), tmp_path / "old.pt")
     runs = [
         E.main(ss_args(pretrained, eval_only=True, checkpoint=str(p), eval_episodes=2))
         for p in (agent, tmp_path / "old.pt")

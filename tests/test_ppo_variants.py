@@ -106,7 +106,7 @@ def test_eval_only_with_each_drop(ss_runs, pretrained):
         agent = PPO.Agent(observer, args, 7, True)
         path = tmp / "ck" / "simple_shapes" / "agents" / f"{PPO.run_name(args)}.pt"
         agent.load_state_dict(torch.load(path, weights_only=False)["agent"])
-        rets, _ = PPO.evaluate(agent, observer, args, 2, drop, args.seed + 10**6, "cpu")
+        rets, _ = PPO.run_episodes(agent, observer, args, 2, drop, args.seed + 10**6)
         assert out["return_mean"] == pytest.approx(float(rets.mean()), abs=1e-9)
 
 

@@ -265,7 +265,7 @@ FINAL_EVAL = {
     "gw_dreamer.py": "run_episodes",
     "gw_dreamer_e2e.py": "run_episodes",
     "dreamer_baseline.py": "run_episodes",
-    "ppo_variants.py": "evaluate",
+    "ppo_variants.py": "run_episodes",
 }
 
 
