@@ -380,6 +380,15 @@ class BlockLinear(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         return torch.einsum("...gi,gio->...go", x, self.weight) + self.bias
 
+    def mixed(self, own: torch.Tensor, shared: torch.Tensor) -> torch.Tensor:
+        """``forward`` of each block's own input (n, blocks, k) concatenated with an input all blocks share
+        (n, s), without copying the shared input per block: its part of every block's map is one (s,
+        blocks x cout) product."""
+        n, g, k = own.shape
+        w_shared = self.weight[:, k:].permute(1, 0, 2).reshape(shared.shape[-1], -1)
+        out = torch.einsum("ngi,gio->ngo", own, self.weight[:, :k]) + (shared @ w_shared).view(n, g, -1)
+        return out + self.bias
+
 
 class RSSM(nn.Module):
     """Recurrent state-space model: h_t = GRU(h_{t-1}, z_{t-1}, a_{t-1}); prior p(z_t | h_t); posterior
@@ -405,8 +414,7 @@ class RSSM(nn.Module):
         n, g = deter.shape[0], self.g
         action = action / action.abs().clamp(min=1).detach()
         x = torch.cat([self.dynin[0](deter), self.dynin[1](stoch), self.dynin[2](action)], -1)
-        x = torch.cat([deter.view(n, g, -1), x.unsqueeze(1).expand(n, g, x.shape[-1])], -1)
-        x = F.silu(self.dynnorm(self.dynhid(x).reshape(n, -1))).view(n, g, -1)
+        x = F.silu(self.dynnorm(self.dynhid.mixed(deter.view(n, g, -1), x).reshape(n, -1))).view(n, g, -1)
         reset, cand, update = [y.reshape(n, -1) for y in self.dyngru(x).chunk(3, -1)]
         cand = torch.tanh(torch.sigmoid(reset) * cand)
         update = torch.sigmoid(update - 1)
@@ -699,12 +707,11 @@ def actor_critic_loss(
     normalised lambda-return through the differentiable rollout; both with an entropy bonus. The two-hot
     critic fits the lambda-returns and is regularised toward its slow copy."""
     feats, conts = dream.feats, dream.conts
-    if dynamics:  # values differentiable through the rollout; the critic's own loss sees detached feats
-        values = agent.twohot.mean(agent.critic(feats))
-        logits = agent.critic(feats[:-1].detach())
-    else:  # the rollout carries no gradient: one critic pass serves the values and the critic loss
-        all_logits = agent.critic(feats)
-        values, logits = agent.twohot.mean(all_logits.detach()), all_logits[:-1]
+    # One critic pass serves the bootstrap values and the critic's loss. With dynamics the values stay
+    # differentiable through the rollout for the actor; the critic's loss still trains the critic alone,
+    # since each loss is back-propagated into its own network only (train_update).
+    all_logits = agent.critic(feats)
+    values, logits = agent.twohot.mean(all_logits if dynamics else all_logits.detach()), all_logits[:-1]
     returns = lambda_returns(dream.rewards, conts, values, gamma, lam)  # (H, N)
     with torch.no_grad():
         w = torch.cumprod(torch.cat([torch.ones_like(conts[:1]), conts[:-1]]), 0) * start_w

@@ -118,6 +118,10 @@ class Args:
     """weight of the reward term in L_WM"""
     wm_done_coef: float = 1.0
     """weight of the done BCE in L_WM"""
+    reward_offset: float = 0.0
+    """constant subtracted from every reward the world model learns, hence from every dreamt reward and
+    value (0: the paper). RoboDesk has no termination, so the best policy is the same; the two-hot heads
+    then work on smaller values (docs/paper_readings.md)"""
     reward_loss: Literal["twohot", "mse"] = "twohot"
     """reward head: 255-bin two-hot over symlog rewards (the table's FC_256 output,
     docs/paper_readings.md) or one output trained with MSE on symlog(r) (the text's 'MSE')"""
@@ -550,7 +554,7 @@ def world_model_loss(wm, reward_dec, batch: dict[str, torch.Tensor], args: Args)
     lines 8-10; Algorithm 2, lines 13-17). Returns the loss, its terms, the GRU state h_t at every entry
     of the sequences (B, T + 1, hidden: the states dreams can start from) and the mask of valid
     transitions. MSE is summed over the z dimensions, averaged over transitions."""
-    z, a, r, d = batch["z"], batch["a"], batch["r"], batch["d"]
+    z, a, r, d = batch["z"], batch["a"], batch["r"] - args.reward_offset, batch["d"]
     first, last = batch["first"], batch["last"]
     B, T1, _ = z.shape
     h = torch.zeros(B, wm.hidden, device=z.device)

@@ -2,6 +2,8 @@
 ablation, world-model learning, symlog/two-hot, imagination gradients, replay entries, the exported
 expert policy feeding pretrain_vae_gw.py, errors."""
 
+import copy
+import dataclasses
 import math
 import random
 from pathlib import Path
@@ -9,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import torch.nn as nn
 from conftest import (
     DREAMER_SMALL,
     assert_actions_read_dreamt_states_as_constants,
@@ -329,11 +332,68 @@ def test_imagination_gradients_follow_the_actor_gradient_mode(pretrained):
     first_layer = agent.actor.net[0][0].weight
     (g_actor,) = torch.autograd.grad(loss_actor, [first_layer], retain_graph=True)
     assert g_actor.abs().sum() > 0
-    # The critic loss sees detached features: no gradient into the world model.
-    g_wm = torch.autograd.grad(loss_critic, agent.world_model_parameters(), allow_unused=True)
-    assert all(g is None for g in g_wm)
+    # One critic pass serves both losses: the critic's loss trains the critic exactly as it would on
+    # detached features (train_update keeps it from the world model and the actor).
+    crit = list(agent.critic.parameters())
+    g_crit = torch.autograd.grad(loss_critic, crit, retain_graph=True)
+    detached = D.Dream(*(x.detach() for x in dream))
+    _, loss_critic_detached, _ = D.actor_critic_loss(agent, detached, torch.ones(6), dynamics=True)
+    assert loss_critic_detached.item() == pytest.approx(loss_critic.item(), rel=1e-6)
+    for g, g_detached in zip(g_crit, torch.autograd.grad(loss_critic_detached, crit), strict=True):
+        assert torch.allclose(g, g_detached, rtol=1e-5, atol=1e-7)
     # The actor reads each dreamt state as a constant (DreamerV3's policy(sg(s))).
     assert_actions_read_dreamt_states_as_constants(D.imagine, agent, deter, stoch)
+
+
+def random_replay(agent, spaces, length: int = 24) -> D.Replay:
+    """One stream of random entries (one episode) for updates on random data."""
+    replay, rng = D.Replay(length, 1, spaces, agent.n_actions, 0), np.random.default_rng(0)
+    for t in range(length):
+        entry = {k: rng.normal(size=(1, *shape)).astype(np.float32) for k, shape in spaces.items()}
+        if "image" in spaces:
+            entry["image"] = rng.integers(0, 256, (1, *spaces["image"])).astype(np.uint8)
+        entry |= {"action": rng.uniform(-1, 1, (1, agent.n_actions)), "reward": [float(t % 3)]}
+        replay.add(np.array([0]), entry | {"terminal": [0.0], "first": [float(t == 0)]})
+    return replay
+
+
+def test_train_update_leaves_the_world_model_to_its_own_loss_under_dynamics_backprop(pretrained):
+    """The dream and the critic's values are differentiable, but only L_WM trains the world model and the
+    critic's loss is the critic's alone: after an update the world model holds the gradients of L_WM on
+    the same batch. Fails if the actor-critic losses are back-propagated into every network."""
+    torch.manual_seed(0)
+    args = dataclasses.replace(small_args(pretrained, env="robodesk"), batch_size=3, batch_length=5)
+    spaces = D.Observer("robodesk", "raw", None).spaces("robodesk")
+    agent = D.Agent("robodesk", spaces, args)
+    replay = random_replay(agent, spaces)
+    twin, replay_twin, rng = copy.deepcopy(agent), copy.deepcopy(replay), torch.get_rng_state()
+    D.train_update(agent, D.make_optimizers(agent, args), replay, args)
+    batch = {k: torch.as_tensor(v) for k, v in replay_twin.sample(3, 5).items()}
+    torch.set_rng_state(rng)  # the same posterior samples
+    D.world_model_loss(twin, batch, args)[0].backward()
+    nn.utils.clip_grad_norm_(twin.world_model_parameters(), 1000.0)  # as train_update clips them
+    for p, q in zip(agent.world_model_parameters(), twin.world_model_parameters(), strict=True):
+        assert (p.grad is None) == (q.grad is None)
+        if p.grad is not None:
+            assert torch.allclose(p.grad, q.grad, atol=1e-6)
+
+
+def test_the_block_gru_mixes_a_shared_input_as_if_copied_to_every_block():
+    """``BlockLinear.mixed(own, shared)`` is ``forward`` on [own_g, shared] per block (the GRU core's
+    input), values and gradients. Fails if the shared part of the weights is sliced or laid out wrongly."""
+    torch.manual_seed(0)
+    block = D.BlockLinear(4, 3 + 5, 6)
+    nn.init.normal_(block.bias)
+    own, shared = torch.randn(7, 4, 3, requires_grad=True), torch.randn(7, 5, requires_grad=True)
+    copied = block(torch.cat([own, shared.unsqueeze(1).expand(7, 4, 5)], -1))
+    mixed = block.mixed(own, shared)
+    assert torch.allclose(mixed, copied, atol=1e-6)
+    grads = [
+        torch.autograd.grad(y.square().sum(), [own, shared, block.weight, block.bias])
+        for y in (mixed, copied)
+    ]
+    for g, h in zip(*grads, strict=True):
+        assert torch.allclose(g, h, atol=1e-5)
 
 
 def test_bad_input_is_explained(tmp_path, pretrained):

@@ -626,7 +626,7 @@ def test_world_model_loss_targets_weights_and_masks_against_a_plain_loop():
         "first": torch.tensor([[1.0, 0, 0, 1, 0], [0, 0, 1, 0, 0]]),
         "last": torch.tensor([[0.0, 0, 1, 0, 0], [0, 1, 0, 0, 0]]),
     }
-    args = SimpleNamespace(wm_z_coef=10.0, wm_reward_coef=2.0, wm_done_coef=0.5)
+    args = SimpleNamespace(wm_z_coef=10.0, wm_reward_coef=2.0, wm_done_coef=0.5, reward_offset=0.25)
     loss, terms, h_entry, valid = G.world_model_loss(Stub(), reward_dec, batch, args)
     lz = lr = ld = n = 0.0
     for b in range(B):
@@ -637,7 +637,7 @@ def test_world_model_loss_targets_weights_and_masks_against_a_plain_loop():
                 continue
             n += 1
             lz += ((h - batch["z"][b, t + 1]) ** 2).sum()
-            lr += (h[0] - batch["r"][b, t]) ** 2
+            lr += (h[0] - (batch["r"][b, t] - 0.25)) ** 2  # --reward-offset 0.25
             ld += F.binary_cross_entropy_with_logits(h[1], batch["d"][b, t])
     assert n == 6 and valid.sum() == n
     for key, want in (("loss_z", lz / n), ("loss_r", lr / n), ("loss_d", ld / n)):
