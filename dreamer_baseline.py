@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import atexit
 import copy
+import ctypes
 import errno
 import json
 import math
@@ -415,10 +416,11 @@ class RSSM(nn.Module):
         action = action / action.abs().clamp(min=1).detach()
         x = torch.cat([self.dynin[0](deter), self.dynin[1](stoch), self.dynin[2](action)], -1)
         x = F.silu(self.dynnorm(self.dynhid.mixed(deter.view(n, g, -1), x).reshape(n, -1))).view(n, g, -1)
-        reset, cand, update = [y.reshape(n, -1) for y in self.dyngru(x).chunk(3, -1)]
+        # The gates stay (n, blocks, units): the block views are read in place, not copied out.
+        reset, cand, update = self.dyngru(x).chunk(3, -1)
         cand = torch.tanh(torch.sigmoid(reset) * cand)
         update = torch.sigmoid(update - 1)
-        return update * cand + (1 - update) * deter
+        return (update * cand + (1 - update) * deter.view(n, g, -1)).reshape(n, -1)
 
     def probs(self, logits: torch.Tensor) -> torch.Tensor:
         """Class probabilities with the 1% uniform mix, (..., 32, 32)."""
@@ -560,6 +562,16 @@ def feat_of(deter: torch.Tensor, stoch: torch.Tensor) -> torch.Tensor:
     return torch.cat([deter, stoch], -1)
 
 
+def heads(x: torch.Tensor, *nets: nn.Sequential) -> list[torch.Tensor]:
+    """Several ``mlp`` heads on the same input, their first linear maps as one product: a dream's features
+    (H + 1, N, F) are read once, and backward gives one gradient for them rather than one per head."""
+    if not all(isinstance(n[0], nn.Sequential) for n in nets):  # heads without hidden layers
+        return [n(x) for n in nets]
+    first = [n[0][0] for n in nets]
+    hidden = F.linear(x, torch.cat([f.weight for f in first])).split([f.out_features for f in first], -1)
+    return [n[1:](n[0][1:](y)) for n, y in zip(nets, hidden, strict=True)]
+
+
 # --------------------------------------------------------------------------------------------------
 # Replay buffer: one stream per environment of DreamerV3 entries
 # (o_t, a_{t-1}, r_t, terminal_t, first_t): the observation, the action that led to it, the reward
@@ -670,10 +682,10 @@ class Dream(NamedTuple):
     conts: torch.Tensor
 
 
-def imagine(agent: Agent, deter: torch.Tensor, stoch: torch.Tensor, horizon: int, grad: bool) -> Dream:
-    """Dream ``horizon`` steps with the actor from the given states: features (H + 1, N, F), actions
-    (H, N, A), rewards and continue probabilities (H, N) of the dreamt states 1..H. With ``grad`` the
-    rollout is differentiable (dynamics backpropagation for continuous actions)."""
+def rollout(agent: Agent, deter: torch.Tensor, stoch: torch.Tensor, horizon: int, grad: bool):
+    """Dream ``horizon`` steps with the actor from the given states: features (H + 1, N, F) and actions
+    (H, N, A). With ``grad`` the rollout is differentiable (dynamics backpropagation for continuous
+    actions)."""
     with torch.set_grad_enabled(grad):
         feats, actions = [feat_of(deter, stoch)], []
         for _ in range(horizon):
@@ -684,10 +696,23 @@ def imagine(agent: Agent, deter: torch.Tensor, stoch: torch.Tensor, horizon: int
             deter, stoch = agent.rssm.img_step(deter, stoch, a)
             feats.append(feat_of(deter, stoch))
             actions.append(a)
-        feats, actions = torch.stack(feats), torch.stack(actions)
-        rewards = agent.twohot.mean(agent.reward_head(feats[1:]))
-        conts = torch.sigmoid(agent.cont_head(feats[1:]).squeeze(-1))
-    return Dream(feats, actions, rewards, conts)
+        return torch.stack(feats), torch.stack(actions)
+
+
+def dream_of(agent: Agent, feats, actions, reward_logits, cont_logits) -> Dream:
+    """The Dream of a rollout from its heads' outputs on every dreamt state, the start included: the
+    rewards and continue probabilities of states 1..H are a slice of those small outputs rather than of
+    the large features, whose gradient is then one product (``heads``)."""
+    rewards = agent.twohot.mean(reward_logits[1:])
+    return Dream(feats, actions, rewards, torch.sigmoid(cont_logits[1:].squeeze(-1)))
+
+
+def imagine(agent: Agent, deter: torch.Tensor, stoch: torch.Tensor, horizon: int, grad: bool) -> Dream:
+    """A rollout (``rollout``) with its predicted rewards and continue probabilities (H, N) of the dreamt
+    states 1..H."""
+    feats, actions = rollout(agent, deter, stoch, horizon, grad)
+    with torch.set_grad_enabled(grad):
+        return dream_of(agent, feats, actions, *heads(feats, agent.reward_head, agent.cont_head))
 
 
 def lambda_returns(rewards, conts, values, gamma: float, lam: float) -> torch.Tensor:
@@ -700,18 +725,33 @@ def lambda_returns(rewards, conts, values, gamma: float, lam: float) -> torch.Te
 
 
 def actor_critic_loss(
-    agent: Agent, dream: Dream, start_w, *, dynamics=False, gamma=1 - 1 / 333, lam=0.95, entropy_coef=3e-4
+    agent: Agent,
+    dream: Dream,
+    start_w,
+    *,
+    dynamics=False,
+    gamma=1 - 1 / 333,
+    lam=0.95,
+    entropy_coef=3e-4,
+    value_logits=None,
 ):
     """DreamerV3 actor-critic on an imagined rollout. Advantages are normalised by the return scale
     max(1, S) (``ReturnScale``). The actor uses REINFORCE, or (``dynamics``) the gradient of the
     normalised lambda-return through the differentiable rollout; both with an entropy bonus. The two-hot
-    critic fits the lambda-returns and is regularised toward its slow copy."""
+    critic fits the lambda-returns and is regularised toward its slow copy. ``value_logits``: the critic on
+    ``dream.feats``, computed by the caller in the reward and continue heads' product (``heads``)."""
     feats, conts = dream.feats, dream.conts
-    # One critic pass serves the bootstrap values and the critic's loss. With dynamics the values stay
-    # differentiable through the rollout for the actor; the critic's loss still trains the critic alone,
-    # since each loss is back-propagated into its own network only (train_update).
-    all_logits = agent.critic(feats)
-    values, logits = agent.twohot.mean(all_logits if dynamics else all_logits.detach()), all_logits[:-1]
+    # With dynamics the values stay differentiable through the rollout for the actor; each loss is
+    # back-propagated into its own network only (train_update), so the critic's loss trains the critic
+    # alone. Without given logits one critic pass serves both; given ones are left to the actor's
+    # gradient, and the critic's loss gets a pass of its own: its backward then computes the weight
+    # gradient of the critic only, not of the shared product.
+    if value_logits is None:
+        value_logits = agent.critic(feats)
+        logits = value_logits[:-1]
+    else:
+        logits = agent.critic(feats[:-1].detach())
+    values = agent.twohot.mean(value_logits if dynamics else value_logits.detach())
     returns = lambda_returns(dream.rewards, conts, values, gamma, lam)  # (H, N)
     with torch.no_grad():
         w = torch.cumprod(torch.cat([torch.ones_like(conts[:1]), conts[:-1]]), 0) * start_w
@@ -750,12 +790,18 @@ def updates_due(env_steps: int, args: Args) -> int:
 
 
 def dream_loss(agent: Agent, deter0: torch.Tensor, stoch0: torch.Tensor, start_w, dynamics: bool, args: Args):
-    """The actor-critic's part of an update: dreams from the replayed posterior states, then their loss."""
-    dream = imagine(agent, deter0, stoch0, args.imag_horizon, grad=dynamics)
+    """The actor-critic's part of an update: dreams from the replayed posterior states, then their loss.
+    With dynamics backpropagation the critic joins the reward and continue heads' product (``heads``):
+    the actor's backward then makes one gradient of the large dreamt features, not two and their sum."""
+    feats, actions = rollout(agent, deter0, stoch0, args.imag_horizon, grad=dynamics)
+    with torch.set_grad_enabled(dynamics):
+        nets = (agent.reward_head, agent.cont_head) + ((agent.critic,) if dynamics else ())
+        reward_logits, cont_logits, *value_logits = heads(feats, *nets)
     return actor_critic_loss(
         agent,
-        dream,
+        dream_of(agent, feats, actions, reward_logits, cont_logits),
         start_w,
+        value_logits=value_logits[0] if value_logits else None,
         dynamics=dynamics,
         gamma=args.gamma,
         lam=args.lam,
@@ -1920,9 +1966,25 @@ def interrupted(run: Run) -> None:
     raise SystemExit(130)  # the shell's code for a run ended by Ctrl-C
 
 
+def keep_freed_memory() -> None:
+    """Keep freed memory in the process (Linux, glibc). By default glibc maps blocks over 128 kB afresh
+    (over 32 MB at most, as its threshold adapts) and hands them back when they are freed, so every CPU
+    update page-faults its large tensors in again: a third of the CPU time of a 12M Dreamer update
+    (docs/dreamer_baseline.md, "Against a peer"), 1.3x on the visual VAE's (PyTorch's CPU tuning guide
+    gets the same through jemalloc / tcmalloc). Elsewhere nothing changes."""
+    if sys.platform.startswith("linux"):
+        try:
+            libc = ctypes.CDLL("libc.so.6")
+            libc.mallopt(-4, 0)  # M_MMAP_MAX: every block comes from the heap, which keeps it once freed
+            libc.mallopt(-1, -1)  # M_TRIM_THRESHOLD at SIZE_MAX: nor is the heap's free top handed back
+        except (OSError, AttributeError):  # not glibc (musl): the allocator stays as it is
+            pass
+
+
 def cli(main, args_type) -> None:
     """Run ``main`` on the parsed command line; a UsageError is printed as one line (exit code 2), and
     Ctrl-C outside the places that save prints one line too (exit code 130)."""
+    keep_freed_memory()
     try:
         main(tyro.cli(args_type))
     except UsageError as err:

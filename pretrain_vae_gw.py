@@ -243,20 +243,6 @@ CPU_PRESET["robodesk"] = {
 }
 
 
-def keep_freed_memory() -> None:
-    """glibc hands every freed block over 128 kB back to the OS and maps it again on the next allocation,
-    so each activation of a CPU update pays page faults (a 2 M-float ReLU output: 1.2 ms instead of
-    0.15). Raising the mmap and trim thresholds keeps freed blocks for reuse; the visual VAE updates ran
-    1.3x faster here (PyTorch's tuning guide recommends the same through jemalloc / tcmalloc)."""
-    if sys.platform.startswith("linux"):
-        try:
-            libc = ctypes.CDLL("libc.so.6")
-            libc.mallopt(-3, 32 * 1024 * 1024)  # M_MMAP_THRESHOLD: glibc's maximum on 64-bit
-            libc.mallopt(-1, 2**31 - 1)  # M_TRIM_THRESHOLD
-        except (OSError, AttributeError):  # not glibc (musl): leave the allocator as it is
-            pass
-
-
 # --------------------------------------------------------------------------------------------------
 # Per-environment shapes (appendix tables)
 # --------------------------------------------------------------------------------------------------
@@ -383,9 +369,25 @@ class StopRequest:
         self.previous = {}
 
 
+def keep_freed_memory() -> None:
+    """Keep freed memory in the process (Linux, glibc). By default glibc maps blocks over 128 kB afresh
+    (over 32 MB at most, as its threshold adapts) and hands them back when they are freed, so every CPU
+    update page-faults its large tensors in again: a third of the CPU time of a 12M Dreamer update
+    (docs/dreamer_baseline.md, "Against a peer"), 1.3x on the visual VAE's (PyTorch's CPU tuning guide
+    gets the same through jemalloc / tcmalloc). Elsewhere nothing changes."""
+    if sys.platform.startswith("linux"):
+        try:
+            libc = ctypes.CDLL("libc.so.6")
+            libc.mallopt(-4, 0)  # M_MMAP_MAX: every block comes from the heap, which keeps it once freed
+            libc.mallopt(-1, -1)  # M_TRIM_THRESHOLD at SIZE_MAX: nor is the heap's free top handed back
+        except (OSError, AttributeError):  # not glibc (musl): the allocator stays as it is
+            pass
+
+
 def cli(main, args_type) -> None:
     """Run ``main`` on the parsed command line; a UsageError is printed as one line (exit code 2), and
     Ctrl-C outside the places that save prints one line too (exit code 130)."""
+    keep_freed_memory()
     try:
         main(tyro.cli(args_type))
     except UsageError as err:
@@ -1851,7 +1853,6 @@ def main(args: Args) -> None:
     args.resolve()
     check_settings(args)
     check_outputs(args)
-    keep_freed_memory()
     if args.torch_threads:
         torch.set_num_threads(args.torch_threads)
     np.random.seed(args.seed)

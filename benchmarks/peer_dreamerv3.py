@@ -39,9 +39,13 @@ class Args:
     batch_length: int = 64
     """steps per sequence (the paper's 65 for ours; 64 for both here, SheepRL's usual length)"""
     updates: int = 3
-    """timed updates of each, after one warm-up update"""
+    """timed updates of each, in turn, after one warm-up update (medians are printed)"""
     threads: int = 0
     """torch CPU threads (0: torch's default)"""
+    keep_freed_memory: bool = True
+    """the allocator setting every script of this project applies at start (``keep_freed_memory``: large
+    freed blocks stay in the heap), here for both updates; --no-keep-freed-memory times both with glibc's
+    default, which page-faults large tensors in afresh on every update"""
     match_parameters: bool = True
     """give SheepRL's model the recurrent state size (a multiple of 64) whose trainable parameters come
     closest to ours (its GRU is dense, ours DreamerV3's block-diagonal one, so the same sizes give it more
@@ -158,18 +162,27 @@ def theirs(env: str, args: D.Args, a: Args, deter: int | None = None, build_only
     return update, n
 
 
-def seconds(fn, n: int) -> float:
-    fn()  # warm-up
-    t = time.perf_counter()
-    for _ in range(n):
+def timed(fns: list, n: int) -> list[tuple[float, float]]:
+    """(wall seconds, CPU seconds of this process) per call of each of ``fns``, medians of ``n`` calls
+    taken in turn, after one warm-up call each. Taking turns spreads a busy machine's slow spells over
+    both; the CPU time does not count the time the process waited for a core."""
+    for fn in fns:
         fn()
-    return (time.perf_counter() - t) / n
+    times = [[] for _ in fns]
+    for _ in range(n):
+        for fn, out in zip(fns, times, strict=True):
+            wall, cpu = time.perf_counter(), time.process_time()
+            fn()
+            out.append((time.perf_counter() - wall, time.process_time() - cpu))
+    return [tuple(float(np.median(col)) for col in zip(*out, strict=True)) for out in times]
 
 
 if __name__ == "__main__":
     a = tyro.cli(Args)
     if a.threads:
         torch.set_num_threads(a.threads)
+    if a.keep_freed_memory:
+        D.keep_freed_memory()
     env, size = a.setting.split(":")
     torch.manual_seed(0)
     our_update, our_n, args = ours(env, size, a)
@@ -180,17 +193,22 @@ if __name__ == "__main__":
     their_update, their_n = theirs(env, args, a, deter)
     import sheeprl
 
+    allocator = "large freed blocks kept (keep_freed_memory)" if a.keep_freed_memory else "glibc's default"
     print(f"torch {torch.__version__}, sheeprl {sheeprl.__version__}, {torch.get_num_threads()} threads, CPU")
     print(f"{env} {size}: batch {a.batch_size} x {a.batch_length}, horizon {args.imag_horizon}")
+    print(f"allocator: {allocator}")
     print(f"recurrent state: ours {args.deter} (8 blocks), SheepRL's {deter} (dense)")
     ours_f, theirs_f = D.count_flops(our_update)[1], D.count_flops(their_update)[1]
-    ours_s, theirs_s = seconds(our_update, a.updates), seconds(their_update, a.updates)
+    (ours_s, ours_cpu), (theirs_s, theirs_cpu) = timed([our_update, their_update], a.updates)
     rows = (
-        ("ours (dreamer_baseline.py)", ours_s, ours_f, our_n),
-        ("SheepRL's DreamerV3", theirs_s, theirs_f, their_n),
+        ("ours (dreamer_baseline.py)", ours_s, ours_cpu, ours_f, our_n),
+        ("SheepRL's DreamerV3", theirs_s, theirs_cpu, theirs_f, their_n),
     )
-    for name, sec, flops, n in rows:
-        rate = f"{flops / 1e9:7.1f} GFLOP ({flops / 1e9 / sec:5.1f} GFLOP/s)"
-        print(f"{name:27s} {sec:7.3f} s per update, {rate}, {n:,} trainable parameters")
-    per_flop = (theirs_s / theirs_f) / (ours_s / ours_f)
-    print(f"ratio (their time / ours): {theirs_s / ours_s:.2f}x per update, {per_flop:.2f}x per FLOP")
+    for name, sec, cpu, flops, n in rows:
+        rate = f"{flops / 1e9:7.1f} GFLOP ({flops / 1e9 / cpu:5.1f} GFLOP per CPU s)"
+        print(f"{name:27s} {sec:7.3f} s per update ({cpu:7.3f} CPU s), {rate}, {n:,} trainable parameters")
+    print(
+        f"ratio (their time / ours): {theirs_s / ours_s:.2f}x per update, "
+        f"{theirs_cpu / ours_cpu:.2f}x in CPU time, "
+        f"{(theirs_cpu / theirs_f) / (ours_cpu / ours_f):.2f}x per FLOP (CPU time)"
+    )

@@ -6,14 +6,18 @@ import copy
 import dataclasses
 import math
 import random
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 import torch.nn as nn
+import torch.nn.functional as F
 from conftest import (
     DREAMER_SMALL,
+    ROOT,
     assert_actions_read_dreamt_states_as_constants,
     interrupt_run,
     previous_layout,
@@ -394,6 +398,76 @@ def test_the_block_gru_mixes_a_shared_input_as_if_copied_to_every_block():
     ]
     for g, h in zip(*grads, strict=True):
         assert torch.allclose(g, h, atol=1e-5)
+
+
+def test_the_gru_core_is_the_block_diagonal_gru_written_out_per_block():
+    """``RSSM.core`` against DreamerV3's block-diagonal GRU written out block by block, values and
+    gradients: block g reads its own slice of h and all of the mixed inputs, and its reset, candidate and
+    update gates are its own output's thirds. Fails if the gates are taken from the wrong block or
+    third."""
+    torch.manual_seed(0)
+    rssm = D.RSSM(embed=8, actions=3, deter=32, hidden=6, classes=4, unimix=0.01)
+    for p in rssm.parameters():
+        nn.init.normal_(p, std=0.3)
+    deter = torch.randn(5, 32, requires_grad=True)
+    stoch, action = torch.randn(5, rssm.stoch), torch.randn(5, 3)
+    x = torch.cat(
+        [rssm.dynin[0](deter), rssm.dynin[1](stoch), rssm.dynin[2](action / action.abs().clamp(min=1))], -1
+    )
+    own, w = 32 // D.BLOCKS, rssm.dynhid.weight
+    hid = [
+        torch.cat([deter[:, g * own : (g + 1) * own], x], -1) @ w[g] + rssm.dynhid.bias[g]
+        for g in range(D.BLOCKS)
+    ]
+    hid = F.silu(rssm.dynnorm(torch.cat(hid, -1)))
+    out = []
+    for g in range(D.BLOCKS):
+        y = hid[:, g * own : (g + 1) * own] @ rssm.dyngru.weight[g] + rssm.dyngru.bias[g]
+        reset, cand, update = y[:, :own], y[:, own : 2 * own], y[:, 2 * own :]
+        cand, update = torch.tanh(torch.sigmoid(reset) * cand), torch.sigmoid(update - 1)
+        out.append(update * cand + (1 - update) * deter[:, g * own : (g + 1) * own])
+    reference, core = torch.cat(out, -1), rssm.core(deter, stoch, action)
+    assert torch.allclose(core, reference, atol=1e-5)
+    wrt = [deter, rssm.dyngru.weight, rssm.dynhid.weight]
+    for g, h in zip(*(torch.autograd.grad(y.square().sum(), wrt) for y in (core, reference)), strict=True):
+        assert torch.allclose(g, h, atol=1e-4)
+
+
+def test_heads_share_their_first_product_and_compute_each_head():
+    """``heads(x, *nets)`` gives each head's own output and the same gradient for x as separate calls.
+    Fails if the shared product's output is split in the wrong order or width."""
+    torch.manual_seed(0)
+    nets = [D.mlp(12, 5, 7, 1), D.mlp(12, 5, 1, 1), D.mlp(12, 5, 3, 2)]
+    for net in nets:
+        for p in net.parameters():
+            nn.init.normal_(p, std=0.5)
+    x = torch.randn(4, 6, 12, requires_grad=True)
+    together, apart = D.heads(x, *nets), [net(x) for net in nets]
+    for y, z in zip(together, apart, strict=True):
+        assert y.shape == z.shape and torch.allclose(y, z, atol=1e-6)
+    (g,) = torch.autograd.grad(sum(y.square().sum() for y in together), x)
+    (h,) = torch.autograd.grad(sum(z.square().sum() for z in apart), x)
+    assert torch.allclose(g, h, atol=1e-5)
+
+
+def test_freed_large_blocks_stay_in_the_process():
+    """After ``keep_freed_memory()`` a freed 256 MB tensor's memory is reused by the next ones, so
+    touching them costs no page faults, where glibc's default maps every one afresh (65,536 faults each).
+    Where the heap places a block varies, so the test takes the fewest faults of four allocations. Fails
+    if large blocks are still mapped per allocation."""
+    if not sys.platform.startswith("linux"):
+        pytest.skip("the allocator setting is glibc's")
+    code = (
+        "import resource, sys, torch; sys.path.insert(0, '.'); import dreamer_baseline as D\n"
+        "def faults():\n"
+        "    x = torch.empty(64 * 2**20); f = resource.getrusage(resource.RUSAGE_SELF).ru_minflt\n"
+        "    x.fill_(1.0); return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - f\n"
+        "before = min(faults() for _ in range(3)); D.keep_freed_memory()\n"
+        "print(before, min(faults() for _ in range(4)))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, check=True)
+    before, after = map(int, out.stdout.split())
+    assert before > 30_000 and after < 1_000, (before, after)
 
 
 def test_bad_input_is_explained(tmp_path, pretrained):

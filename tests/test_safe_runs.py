@@ -363,6 +363,8 @@ BAD_FLAGS = [
     ("gw_dreamer.py", ["--drop", "vision"], "--drop vision: is for evaluation: add --eval-only"),
     ("gw_dreamer.py", ["--resume", "--overwrite"], "cannot go with --overwrite"),
     ("gw_dreamer_e2e.py", ["--gw-batch-size", "1"], "--gw-batch-size 1"),
+    ("gw_dreamer.py", ["--reward-offset", "0.5"], "--reward-offset 0.5: is for RoboDesk"),
+    ("gw_dreamer_e2e.py", ["--reward-offset", "1"], "--reward-offset 1.0: is for RoboDesk"),
     ("dreamer_baseline.py", ["--train-ratio", "0"], "--train-ratio 0.0: must be positive"),
     ("ppo_variants.py", ["--num-envs", "0"], "--num-envs 0: must be at least 1"),
     ("ppo_variants.py", ["--drop", "attr"], "--drop attr: is for evaluation: add --eval-only"),

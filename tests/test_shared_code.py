@@ -20,7 +20,7 @@ SHARED = {
     # Safe runs (docs/safe_runs.md): pre-training carries the agents' copies (their block holds them)
     **dict.fromkeys(
         "UsageError require atomic_save read_checkpoint ensure_writable setting_changes StopRequest"
-        " check_device cli".split(),
+        " check_device keep_freed_memory cli".split(),
         (GW, PRETRAIN),
     ),
     # Environments, steps and FLOPs
