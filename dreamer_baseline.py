@@ -707,14 +707,6 @@ def dream_of(agent: Agent, feats, actions, reward_logits, cont_logits) -> Dream:
     return Dream(feats, actions, rewards, torch.sigmoid(cont_logits[1:].squeeze(-1)))
 
 
-def imagine(agent: Agent, deter: torch.Tensor, stoch: torch.Tensor, horizon: int, grad: bool) -> Dream:
-    """A rollout (``rollout``) with its predicted rewards and continue probabilities (H, N) of the dreamt
-    states 1..H."""
-    feats, actions = rollout(agent, deter, stoch, horizon, grad)
-    with torch.set_grad_enabled(grad):
-        return dream_of(agent, feats, actions, *heads(feats, agent.reward_head, agent.cont_head))
-
-
 def lambda_returns(rewards, conts, values, gamma: float, lam: float) -> torch.Tensor:
     """R_k = r_{k+1} + gamma c_{k+1} ((1 - lam) v_{k+1} + lam R_{k+1}), R_H = v_H (DreamerV3)."""
     out, last = [], values[-1]

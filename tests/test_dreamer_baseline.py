@@ -322,14 +322,25 @@ def test_symlog_and_two_hot_round_trips():
     assert torch.allclose(th.mean(torch.log(w + 1e-30)), x, rtol=1e-4, atol=1e-4)
 
 
+def imagine(agent, deter, stoch, horizon: int, grad: bool, critic: bool = False):
+    """A Dream as dream_loss makes it: the rollout, then its heads in one product; with ``critic`` also
+    the critic's logits from that product."""
+    feats, actions = D.rollout(agent, deter, stoch, horizon, grad)
+    with torch.set_grad_enabled(grad):
+        nets = (agent.reward_head, agent.cont_head) + ((agent.critic,) if critic else ())
+        reward, cont, *value = D.heads(feats, *nets)
+    dream = D.dream_of(agent, feats, actions, reward, cont)
+    return (dream, value[0]) if critic else dream
+
+
 def test_imagination_gradients_follow_the_actor_gradient_mode(pretrained):
     torch.manual_seed(0)
     args = small_args(pretrained, env="robodesk")
     agent = D.Agent("robodesk", D.Observer("robodesk", "raw", None).spaces("robodesk"), args)
     deter, stoch = torch.randn(6, 64), torch.zeros(6, 128)
-    feats, actions, rewards, conts = D.imagine(agent, deter, stoch, 4, grad=False)
+    feats, actions, rewards, conts = imagine(agent, deter, stoch, 4, grad=False)
     assert feats.shape == (5, 6, 64 + 128) and actions.shape == (4, 6, 5) and not feats.requires_grad
-    dream = D.imagine(agent, deter, stoch, 4, grad=True)
+    dream = imagine(agent, deter, stoch, 4, grad=True)
     loss_actor, loss_critic, _ = D.actor_critic_loss(agent, dream, torch.ones(6), dynamics=True)
     assert loss_actor.dtype == loss_critic.dtype == torch.float32  # the float64 return scale stays apart
     # Dynamics backpropagation: the actor's loss reaches its weights through the imagined transitions.
@@ -346,7 +357,7 @@ def test_imagination_gradients_follow_the_actor_gradient_mode(pretrained):
     for g, g_detached in zip(g_crit, torch.autograd.grad(loss_critic_detached, crit), strict=True):
         assert torch.allclose(g, g_detached, rtol=1e-5, atol=1e-7)
     # The actor reads each dreamt state as a constant (DreamerV3's policy(sg(s))).
-    assert_actions_read_dreamt_states_as_constants(D.imagine, agent, deter, stoch)
+    assert_actions_read_dreamt_states_as_constants(imagine, agent, deter, stoch)
 
 
 def random_replay(agent, spaces, length: int = 24) -> D.Replay:
@@ -448,6 +459,32 @@ def test_heads_share_their_first_product_and_compute_each_head():
     (g,) = torch.autograd.grad(sum(y.square().sum() for y in together), x)
     (h,) = torch.autograd.grad(sum(z.square().sum() for z in apart), x)
     assert torch.allclose(g, h, atol=1e-5)
+
+
+def test_values_from_the_shared_heads_product_train_as_the_critic_alone(pretrained):
+    """The critic in the heads' shared product (dream_loss under dynamics backpropagation): the same
+    losses, actor gradients and critic gradients as one critic pass of its own. Fails if the critic's own
+    pass reads other states or the shared product's values lose their gradient for the actor."""
+    torch.manual_seed(0)
+    args = small_args(pretrained, env="robodesk")
+    agent = D.Agent("robodesk", D.Observer("robodesk", "raw", None).spaces("robodesk"), args)
+    for p in agent.critic.parameters():
+        nn.init.normal_(p, std=0.1)
+    deter, stoch = torch.randn(6, 64), torch.zeros(6, 128)
+    nets = [list(agent.actor.parameters()), list(agent.critic.parameters())]
+    grads = []
+    for shared in (False, True):
+        agent.return_scale.ema.zero_(), agent.return_scale.count.zero_()
+        torch.manual_seed(1)
+        dream, value = imagine(agent, deter, stoch, 4, grad=True, critic=True)
+        given = value if shared else None
+        losses = D.actor_critic_loss(agent, dream, torch.ones(6), dynamics=True, value_logits=given)
+        grads.append(
+            [torch.autograd.grad(x, n, retain_graph=True) for x, n in zip(losses[:2], nets, strict=True)]
+        )
+    for plain, shared in zip(*grads, strict=True):
+        for g, h in zip(plain, shared, strict=True):
+            assert g.abs().sum() > 0 and torch.allclose(g, h, rtol=1e-4, atol=1e-6)
 
 
 def test_freed_large_blocks_stay_in_the_process():
