@@ -464,16 +464,19 @@ class Actor(nn.Module):
         self.discrete, self.n, self.unimix = discrete, n_actions, unimix
         self.net = mlp(feat, units, n_actions if discrete else 2 * n_actions, layers)
 
-    def params(self, feat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-        """Class probabilities (discrete) or Gaussian mean and std (continuous)."""
-        out = self.net(feat)
+    def forward(self, feat: torch.Tensor) -> torch.Tensor:
+        """The network's output: logits, or the mean and std before their squashing."""
+        return self.net(feat)
+
+    def params(self, out: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """Class probabilities (discrete) or Gaussian mean and std (continuous) of the output ``out``."""
         if self.discrete:
             return (1 - self.unimix) * out.softmax(-1) + self.unimix / self.n, None
         mean, std = out.chunk(2, -1)
         return torch.tanh(mean), 0.9 * torch.sigmoid(std + 2.0) + 0.1
 
-    def dist(self, feat: torch.Tensor) -> torch.distributions.Distribution:
-        a, b = self.params(feat)
+    def dist(self, out: torch.Tensor) -> torch.distributions.Distribution:
+        a, b = self.params(out)
         if self.discrete:
             return torch.distributions.Categorical(probs=a)
         return torch.distributions.Independent(torch.distributions.Normal(a, b), 1)
@@ -482,7 +485,11 @@ class Actor(nn.Module):
         """One-hot (discrete) or a vector in [-1, 1]. ``noise``: uniform (discrete, Gumbel-max) or
         standard normal (continuous) numbers given from outside (the exported policy); without it the
         sample is drawn here (reparameterised for continuous actions)."""
-        probs, std = self.params(feat)
+        return self.sample(self(feat), mode, noise)
+
+    def sample(self, out: torch.Tensor, mode: bool = False, noise: torch.Tensor | None = None):
+        """``act`` from the network's output ``out``."""
+        probs, std = self.params(out)
         if self.discrete:
             if mode:
                 return F.one_hot(probs.argmax(-1), self.n).float()
@@ -497,8 +504,9 @@ class Actor(nn.Module):
             noise = torch.randn_like(mean)
         return (mean + std * noise).clamp(-1, 1)
 
-    def log_prob(self, feat: torch.Tensor, a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        d = self.dist(feat)
+    def log_prob(self, out: torch.Tensor, a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Log-probability of ``a`` and the entropy, from the network's output ``out``."""
+        d = self.dist(out)
         return d.log_prob(a.argmax(-1) if self.discrete else a), d.entropy()
 
 
@@ -674,37 +682,41 @@ def world_model_loss(agent: Agent, batch: dict[str, torch.Tensor], args: Args):
 
 class Dream(NamedTuple):
     """An imagined rollout of H steps from N starts: the actor-critic's inputs (H + 1, N, ...), the
-    actions taken (H, N, A), the predicted rewards and continuation probabilities (H, N)."""
+    actions taken (H, N, A), the predicted rewards and continuation probabilities (H, N), and the actor's
+    outputs that drew the actions (H, N, ...) when the rollout is differentiable, with their graph (the
+    actor-critic loss reads them rather than running the actor again; None otherwise)."""
 
     feats: torch.Tensor
     actions: torch.Tensor
     rewards: torch.Tensor
     conts: torch.Tensor
+    policy: torch.Tensor | None = None
 
 
 def rollout(agent: Agent, deter: torch.Tensor, stoch: torch.Tensor, horizon: int, grad: bool):
-    """Dream ``horizon`` steps with the actor from the given states: features (H + 1, N, F) and actions
-    (H, N, A). With ``grad`` the rollout is differentiable (dynamics backpropagation for continuous
-    actions)."""
+    """Dream ``horizon`` steps with the actor from the given states: features (H + 1, N, F), actions
+    (H, N, A) and, with ``grad`` (the rollout differentiable: dynamics backpropagation for continuous
+    actions), the actor's outputs that drew them (else None)."""
     with torch.set_grad_enabled(grad):
-        feats, actions = [feat_of(deter, stoch)], []
+        feats, actions, outs = [feat_of(deter, stoch)], [], []
         for _ in range(horizon):
             # The actor reads the dreamt state with its gradient stopped, as DreamerV3's policy(sg(s)):
             # an action's gradient is that of the returns after it, never through the actor's reply to
             # states its own earlier actions made (that path trains period-2 alternation on RoboDesk).
-            a = agent.actor.act(feats[-1].detach())
+            outs.append(agent.actor(feats[-1].detach()))
+            a = agent.actor.sample(outs[-1])
             deter, stoch = agent.rssm.img_step(deter, stoch, a)
             feats.append(feat_of(deter, stoch))
             actions.append(a)
-        return torch.stack(feats), torch.stack(actions)
+        return torch.stack(feats), torch.stack(actions), torch.stack(outs) if grad else None
 
 
-def dream_of(agent: Agent, feats, actions, reward_logits, cont_logits) -> Dream:
+def dream_of(agent: Agent, feats, actions, policy, reward_logits, cont_logits) -> Dream:
     """The Dream of a rollout from its heads' outputs on every dreamt state, the start included: the
     rewards and continue probabilities of states 1..H are a slice of those small outputs rather than of
     the large features, whose gradient is then one product (``heads``)."""
     rewards = agent.twohot.mean(reward_logits[1:])
-    return Dream(feats, actions, rewards, torch.sigmoid(cont_logits[1:].squeeze(-1)))
+    return Dream(feats, actions, rewards, torch.sigmoid(cont_logits[1:].squeeze(-1)), policy)
 
 
 def lambda_returns(rewards, conts, values, gamma: float, lam: float) -> torch.Tensor:
@@ -750,7 +762,8 @@ def actor_critic_loss(
         scale = agent.return_scale.update(returns)
         norm = scale.clamp(min=1.0).to(returns.dtype)  # float64 state, float32 math
         slow_target = agent.twohot.mean(agent.slow_critic(feats[:-1].detach()))
-    logp, entropy = agent.actor.log_prob(feats[:-1].detach(), dream.actions.detach())
+    policy = agent.actor(feats[:-1].detach()) if dream.policy is None else dream.policy
+    logp, entropy = agent.actor.log_prob(policy, dream.actions.detach())
     if dynamics:
         objective = (returns - values[:-1].detach()) / norm
     else:
@@ -785,13 +798,13 @@ def dream_loss(agent: Agent, deter0: torch.Tensor, stoch0: torch.Tensor, start_w
     """The actor-critic's part of an update: dreams from the replayed posterior states, then their loss.
     With dynamics backpropagation the critic joins the reward and continue heads' product (``heads``):
     the actor's backward then makes one gradient of the large dreamt features, not two and their sum."""
-    feats, actions = rollout(agent, deter0, stoch0, args.imag_horizon, grad=dynamics)
+    feats, actions, policy = rollout(agent, deter0, stoch0, args.imag_horizon, grad=dynamics)
     with torch.set_grad_enabled(dynamics):
         nets = (agent.reward_head, agent.cont_head) + ((agent.critic,) if dynamics else ())
         reward_logits, cont_logits, *value_logits = heads(feats, *nets)
     return actor_critic_loss(
         agent,
-        dream_of(agent, feats, actions, reward_logits, cont_logits),
+        dream_of(agent, feats, actions, policy, reward_logits, cont_logits),
         start_w,
         value_logits=value_logits[0] if value_logits else None,
         dynamics=dynamics,

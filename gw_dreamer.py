@@ -393,8 +393,14 @@ class Actor(nn.Module):
         self.discrete, self.n, self.unimix = discrete, n_actions, unimix
         self.net = mlp(hidden, width, n_actions if discrete else 2 * n_actions, depth)
 
+    def forward(self, h: torch.Tensor) -> torch.Tensor:
+        """The network's output: logits, or the mean and std before their squashing."""
+        return self.net(h)
+
     def dist(self, h: torch.Tensor) -> torch.distributions.Distribution:
-        out = self.net(h)
+        return self.dist_of(self(h))
+
+    def dist_of(self, out: torch.Tensor) -> torch.distributions.Distribution:
         if self.discrete:
             probs = (1 - self.unimix) * out.softmax(-1) + self.unimix / self.n
             return torch.distributions.Categorical(probs=probs)
@@ -404,14 +410,19 @@ class Actor(nn.Module):
 
     def act(self, h: torch.Tensor, mode: bool = False) -> torch.Tensor:
         """Action as the world model reads it: one-hot (discrete) or a vector in [-1, 1]."""
-        d = self.dist(h)
+        return self.sample(self(h), mode)
+
+    def sample(self, out: torch.Tensor, mode: bool = False) -> torch.Tensor:
+        """``act`` from the network's output ``out``."""
+        d = self.dist_of(out)
         if self.discrete:
             idx = d.probs.argmax(-1) if mode else d.sample()
             return F.one_hot(idx, self.n).float()
         return (d.mean if mode else d.rsample()).clamp(-1, 1)  # rsample: differentiable in dreams
 
-    def log_prob(self, h: torch.Tensor, a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        d = self.dist(h)
+    def log_prob(self, out: torch.Tensor, a: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Log-probability of ``a`` and the entropy, from the network's output ``out``."""
+        d = self.dist_of(out)
         return d.log_prob(a.argmax(-1) if self.discrete else a), d.entropy()
 
 
@@ -596,12 +607,15 @@ def dream_starts(h_entry: torch.Tensor, batch: dict[str, torch.Tensor], imag_fro
 
 class Dream(NamedTuple):
     """An imagined rollout of H steps from N starts: the actor-critic's inputs (H + 1, N, ...), the
-    actions taken (H, N, A), the predicted rewards and continuation probabilities (H, N)."""
+    actions taken (H, N, A), the predicted rewards and continuation probabilities (H, N), and the actor's
+    outputs that drew the actions (H, N, ...) when the rollout is differentiable, with their graph (the
+    actor-critic loss reads them rather than running the actor again; None otherwise)."""
 
     feats: torch.Tensor
     actions: torch.Tensor
     rewards: torch.Tensor
     conts: torch.Tensor
+    policy: torch.Tensor | None = None
 
 
 def imagine(agent, h0: torch.Tensor, z0: torch.Tensor, horizon: int, grad: bool = False) -> Dream:
@@ -610,20 +624,21 @@ def imagine(agent, h0: torch.Tensor, z0: torch.Tensor, horizon: int, grad: bool 
     differentiable in the actions (dynamics backpropagation); without, no gradient flows through it."""
     wm = agent.wm
     with torch.set_grad_enabled(grad):
-        feats, actions, rewards, conts = [agent.features(h0, z0)], [], [], []
+        feats, actions, rewards, conts, outs = [agent.features(h0, z0)], [], [], [], []
         h, z = h0, z0
         for _ in range(horizon):
             # The actor reads the dreamt state with its gradient stopped, as DreamerV3's policy(sg(s)):
             # an action's gradient is that of the returns after it, never through the actor's reply to
             # states its own earlier actions made (that path trains period-2 alternation on RoboDesk).
-            a = agent.actor.act(feats[-1].detach())
+            outs.append(agent.actor(feats[-1].detach()))
+            a = agent.actor.sample(outs[-1])
             h = wm.step(h, z, a)
             z, r_out, d_logit = wm.heads(h)
             feats.append(agent.features(h, z))
             actions.append(a)
             rewards.append(agent.reward_dec.value(r_out))
             conts.append(1 - torch.sigmoid(d_logit))
-    return Dream(*map(torch.stack, (feats, actions, rewards, conts)))
+    return Dream(*map(torch.stack, (feats, actions, rewards, conts)), torch.stack(outs) if grad else None)
 
 
 def lambda_returns(rewards, conts, values, gamma: float, lam: float) -> torch.Tensor:
@@ -653,12 +668,11 @@ def actor_critic_loss(
     lambda-returns regularised toward its slow copy. ``start_w`` masks starts that are an episode's final
     observation."""
     twohot, feats, conts = agent.twohot, dream.feats, dream.conts
-    if dynamics:  # values differentiable through the dream; the critic's own loss reads detached feats
-        values = twohot.mean(agent.critic(feats))
-        logits = agent.critic(feats[:-1].detach())
-    else:  # one critic pass serves the bootstrap values and the critic loss
-        all_logits = agent.critic(feats)
-        values, logits = twohot.mean(all_logits.detach()), all_logits[:-1]
+    # One critic pass serves the bootstrap values and the critic's loss. Under dynamics backpropagation the
+    # values stay differentiable through the dream for the actor; each loss is back-propagated into its
+    # own network only (train_update), so the critic's loss still trains the critic alone.
+    all_logits = agent.critic(feats)
+    values, logits = twohot.mean(all_logits if dynamics else all_logits.detach()), all_logits[:-1]
     returns = lambda_returns(dream.rewards, conts, values, gamma, lam)  # (H, N)
     with torch.no_grad():
         # Weight of dreamt state k: the predicted probability that the episode is still running.
@@ -666,14 +680,15 @@ def actor_critic_loss(
         scale = agent.return_scale.update(returns)
         norm = scale.clamp(min=1.0).to(returns.dtype)  # float64 state, float32 math
         slow_target = twohot.mean(agent.slow_critic(feats[:-1].detach()))
-    logp, entropy = agent.actor.log_prob(feats[:-1].detach(), dream.actions.detach())
+    policy = agent.actor(feats[:-1].detach()) if dream.policy is None else dream.policy
+    logp, entropy = agent.actor.log_prob(policy, dream.actions.detach())
     if dynamics:
         objective = (returns - values[:-1].detach()) / norm
     else:
         objective = logp * ((returns - values[:-1]) / norm).detach()
     loss_actor = -(w * (objective + entropy_coef * entropy)).mean()
     if mean_reg:  # the continuous actor's mean before its tanh, kept out of saturation
-        m = agent.actor.net(feats[:-1].detach()).chunk(2, -1)[0]
+        m = policy.chunk(2, -1)[0]
         loss_actor = loss_actor + mean_reg * 0.5 * (m**2).sum(-1).mean()
     target = returns.detach()
     loss_critic = (w * (twohot.loss(logits, target) + twohot.loss(logits, slow_target))).mean()

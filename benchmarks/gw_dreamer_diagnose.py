@@ -78,7 +78,7 @@ def dream_advantages(agent: G.Agent, replay: G.Replay, args: G.Args) -> dict:
     b = {k: torch.as_tensor(v) for k, v in replay.sample(64, 32).items()}
     h_entry = G.world_model_loss(agent.wm, agent.reward_dec, b, args)[2]
     h0, z0, _ = G.dream_starts(h_entry, b, "all")
-    feats, acts, rews, conts = G.imagine(agent, h0, z0, 20)
+    feats, acts, rews, conts, _ = G.imagine(agent, h0, z0, 20)
     values = agent.twohot.mean(agent.critic(feats))
     returns = G.lambda_returns(rews, conts, values, args.gamma, args.lam)
     adv, taken = returns - values[:-1], acts.argmax(-1)

@@ -103,12 +103,12 @@ def assert_actions_read_dreamt_states_as_constants(imagine, agent, *starts) -> N
     on it through the state the actor reads (DreamerV3's policy(sg(s))). ``imagine(agent, *starts,
     horizon, grad)`` is a script's dream."""
     taken = []
-    act = type(agent.actor).act
-    agent.actor.act = lambda *a, **k: taken.append(act(agent.actor, *a, **k)) or taken[-1]
+    sample = type(agent.actor).sample
+    agent.actor.sample = lambda *a, **k: taken.append(sample(agent.actor, *a, **k)) or taken[-1]
     try:
         dream = imagine(agent, *starts, 3, grad=True)
     finally:
-        del agent.actor.act
+        del agent.actor.sample
     (to_state,) = torch.autograd.grad(dream.feats[-1].sum(), taken[0], retain_graph=True)
     assert to_state.abs().sum() > 0
     assert torch.autograd.grad(taken[1].sum(), taken[0], allow_unused=True)[0] is None

@@ -325,11 +325,11 @@ def test_symlog_and_two_hot_round_trips():
 def imagine(agent, deter, stoch, horizon: int, grad: bool, critic: bool = False):
     """A Dream as dream_loss makes it: the rollout, then its heads in one product; with ``critic`` also
     the critic's logits from that product."""
-    feats, actions = D.rollout(agent, deter, stoch, horizon, grad)
+    feats, actions, policy = D.rollout(agent, deter, stoch, horizon, grad)
     with torch.set_grad_enabled(grad):
         nets = (agent.reward_head, agent.cont_head) + ((agent.critic,) if critic else ())
         reward, cont, *value = D.heads(feats, *nets)
-    dream = D.dream_of(agent, feats, actions, reward, cont)
+    dream = D.dream_of(agent, feats, actions, policy, reward, cont)
     return (dream, value[0]) if critic else dream
 
 
@@ -338,10 +338,17 @@ def test_imagination_gradients_follow_the_actor_gradient_mode(pretrained):
     args = small_args(pretrained, env="robodesk")
     agent = D.Agent("robodesk", D.Observer("robodesk", "raw", None).spaces("robodesk"), args)
     deter, stoch = torch.randn(6, 64), torch.zeros(6, 128)
-    feats, actions, rewards, conts = imagine(agent, deter, stoch, 4, grad=False)
+    feats, actions, rewards, conts, policy = imagine(agent, deter, stoch, 4, grad=False)
     assert feats.shape == (5, 6, 64 + 128) and actions.shape == (4, 6, 5) and not feats.requires_grad
+    assert policy is None  # without a graph the loss runs the actor on the dreamt states itself
     dream = imagine(agent, deter, stoch, 4, grad=True)
+    # The loss reads the actor outputs that drew the actions (the actor on each dreamt state), not a
+    # second pass of the actor: the same losses either way.
+    assert torch.allclose(dream.policy, agent.actor(dream.feats[:-1].detach()))
+    again = D.actor_critic_loss(agent, dream._replace(policy=None), torch.ones(6), dynamics=True)
+    agent.return_scale.ema.zero_(), agent.return_scale.count.zero_()
     loss_actor, loss_critic, _ = D.actor_critic_loss(agent, dream, torch.ones(6), dynamics=True)
+    assert loss_actor.item() == pytest.approx(again[0].item(), rel=1e-5)
     assert loss_actor.dtype == loss_critic.dtype == torch.float32  # the float64 return scale stays apart
     # Dynamics backpropagation: the actor's loss reaches its weights through the imagined transitions.
     first_layer = agent.actor.net[0][0].weight
@@ -351,7 +358,7 @@ def test_imagination_gradients_follow_the_actor_gradient_mode(pretrained):
     # detached features (train_update keeps it from the world model and the actor).
     crit = list(agent.critic.parameters())
     g_crit = torch.autograd.grad(loss_critic, crit, retain_graph=True)
-    detached = D.Dream(*(x.detach() for x in dream))
+    detached = D.Dream(*(x.detach() for x in dream[:4]))
     _, loss_critic_detached, _ = D.actor_critic_loss(agent, detached, torch.ones(6), dynamics=True)
     assert loss_critic_detached.item() == pytest.approx(loss_critic.item(), rel=1e-6)
     for g, g_detached in zip(g_crit, torch.autograd.grad(loss_critic_detached, crit), strict=True):

@@ -281,7 +281,8 @@ def test_imagination_shapes_and_stop_gradients():
     args = G.Args().resolve()
     h0, z0 = torch.randn(6, 64), torch.rand(6, 10) * 2 - 1
     dream = G.imagine(agent, h0, z0, 7)
-    hs, acts, rews, conts = dream
+    hs, acts, rews, conts, policy = dream
+    assert policy is None  # a dream without gradient keeps no actor outputs: the loss runs the actor
     assert hs.shape == (8, 6, 64) and acts.shape == (7, 6, 7) and rews.shape == conts.shape == (7, 6)
     assert torch.equal(hs[0], h0) and not hs.requires_grad and torch.all(acts.sum(-1) == 1)
     assert torch.all((conts >= 0) & (conts <= 1))
@@ -656,6 +657,16 @@ def test_return_scale_is_debiased_from_the_first_update():
     assert scale.update(r2).item() == pytest.approx(ema / (1 - 0.99**2))
 
 
+def stub_actor(log_prob):
+    """An actor whose output is its input and whose log-probabilities and entropies are given."""
+
+    def actor(feats):
+        return feats
+
+    actor.log_prob = log_prob
+    return actor
+
+
 def test_actor_critic_loss_against_the_formulas_written_out():
     """A stub agent with one-bin critics (value = logit; slow critic = 2 x critic) and a given log-prob /
     entropy, on a dream with known rewards and continuations: the actor loss is
@@ -672,7 +683,7 @@ def test_actor_critic_loss_against_the_formulas_written_out():
         twohot=SimpleNamespace(mean=lambda x: x[..., 0], loss=lambda x, t: (x[..., 0] - t) ** 2),
         critic=lambda f: f,
         slow_critic=lambda f: 2 * f,
-        actor=SimpleNamespace(log_prob=lambda f, a: (logp, entropy)),
+        actor=stub_actor(lambda out, a: (logp, entropy)),
         return_scale=G.ReturnScale(),
     )
     rewards = torch.tensor([[1.0, 3.0], [0.5, -2.0], [4.0, 0.0]])
@@ -717,7 +728,7 @@ def test_the_continuous_actor_is_a_bounded_gaussian():
     mean, std = torch.tanh(m), 0.9 * torch.sigmoid(s + 2.0) + 0.1
     assert std.min() < 0.11 and std.max() > 0.99 and ((std >= 0.1) & (std <= 1.0)).all()
     a = torch.rand(256, 5) * 2 - 1
-    logp, ent = actor.log_prob(h, a)
+    logp, ent = actor.log_prob(actor(h), a)
     want = (-((a - mean) ** 2) / (2 * std**2) - std.log() - 0.5 * math.log(2 * math.pi)).sum(-1)
     assert torch.allclose(logp, want, atol=1e-4)
     assert torch.allclose(ent, (0.5 * math.log(2 * math.pi * math.e) + std.log()).sum(-1), atol=1e-5)
@@ -766,6 +777,30 @@ def continuous_agent() -> tuple[G.Agent, torch.Tensor, torch.Tensor]:
     return agent, h0, torch.rand(6, 76, dtype=torch.float64) * 2 - 1
 
 
+def test_a_differentiable_dream_hands_the_loss_the_actor_outputs_that_drew_its_actions():
+    """Under dynamics backpropagation the loss reads the actor's outputs kept by the rollout instead of
+    running the actor again: they are the actor on the dreamt states, and the losses and the actor's
+    gradients (entropy bonus and mean penalty included) equal those of outputs computed afresh. Fails if
+    the kept outputs are a step off or read the dreamt states with their gradient."""
+    agent, h0, z0 = continuous_agent()
+    agent, h0, z0 = agent.float(), h0.float(), z0.float()
+    agent.return_scale.update = lambda r: torch.full((1,), 2.0, dtype=torch.float64)
+    torch.manual_seed(3)
+    dream = G.imagine(agent, h0, z0, 5, grad=True)
+    assert dream.policy.shape == (5, 6, 10) and dream.policy.requires_grad
+    assert torch.allclose(dream.policy, agent.actor(dream.feats[:-1].detach()))
+    actor = list(agent.actor.parameters())
+    results = []
+    for given in (dream, dream._replace(policy=None)):
+        kw = dict(dynamics=True, entropy_coef=0.1, mean_reg=0.5)
+        loss_a, loss_c, _ = G.actor_critic_loss(agent, given, torch.ones(6), **kw)
+        results.append((loss_a, loss_c, torch.autograd.grad(loss_a, actor, retain_graph=True)))
+    (a1, c1, g1), (a2, c2, g2) = results
+    assert a1.item() == pytest.approx(a2.item(), rel=1e-5) and c1.item() == pytest.approx(c2.item(), rel=1e-5)
+    for g, h in zip(g1, g2, strict=True):
+        assert g.abs().sum() > 0 and torch.allclose(g, h, rtol=1e-4, atol=1e-7)
+
+
 def test_dynamics_backprop_gives_the_derivative_of_the_dreamt_return_in_the_actor_weights():
     """With --actor-grad dynamics (RoboDesk's default) the actor's gradient is the derivative of its loss,
     -mean(w (R - v) / S), through the dreamt transitions, with the actor reading each dreamt state as a
@@ -796,11 +831,13 @@ def test_dynamics_backprop_gives_the_derivative_of_the_dreamt_return_in_the_acto
     def pinned_loss() -> float:
         """The loss with the actor reading the unperturbed dream's states, which sg(s) holds constant."""
         inputs = iter(states)
-        agent.actor.act = lambda feats, mode=False: type(agent.actor).act(agent.actor, next(inputs), mode)
+        forward = type(agent.actor).forward
+        # The dream's calls read one state each (N, F); the loss's own call on all of them is left as is.
+        agent.actor.forward = lambda feats: forward(agent.actor, next(inputs) if feats.dim() == 2 else feats)
         try:
             return loss(False).item()
         finally:
-            del agent.actor.act
+            del agent.actor.forward
 
     for j in range(3):
         with torch.no_grad():
