@@ -133,6 +133,10 @@ class Args:
     entropy_coef: float | None = None
     """actor entropy regulariser, which the paper does not give (default 3e-3 Simple Shapes, 3e-4
     RoboDesk: DreamerV3's value, for its continuous actor; why they differ: docs/paper_readings.md)"""
+    critic_replay_coef: float = 0.0
+    """weight of a second critic loss on the replayed states themselves, toward lambda-returns of their real
+    rewards (DreamerV3's later replay value loss, 0.3 there); 0: the critic learns from dreams alone, as
+    the paper's actor-critic (docs/gw_dreamer.md)"""
     slow_critic_decay: float = 0.98
     """EMA decay of the slow critic that regularises the critic (DreamerV3)"""
     return_norm_decay: float = 0.99
@@ -696,6 +700,28 @@ def actor_critic_loss(
     return loss_actor, loss_critic, stats
 
 
+def replay_critic_loss(agent: Agent, h_entry: torch.Tensor, batch: dict[str, torch.Tensor], args: Args):
+    """The critic on every replayed state (B, T + 1), toward lambda-returns of the replayed rewards that
+    bootstrap from its own values and stop at an episode's final observation, regularised toward its slow
+    copy like the dream loss (DreamerV3's replay value loss). A dream gives the critic one start per
+    sequence; this gives it every state the agent visited, with rewards nobody dreamt."""
+    r, d, last = batch["r"] - args.reward_offset, batch["d"], batch["last"]
+    feats = agent.features(h_entry, batch["z"])
+    logits = agent.critic(feats)
+    values = agent.twohot.mean(logits.detach())
+    ret, out = values[:, -1], []
+    for t in reversed(range(feats.shape[1] - 1)):
+        ret = r[:, t] + args.gamma * (1 - d[:, t]) * ((1 - args.lam) * values[:, t + 1] + args.lam * ret)
+        ret = torch.where(last[:, t] > 0, values[:, t], ret)  # no transition out of a final observation
+        out.append(ret)
+    returns, valid = torch.stack(out[::-1], 1), 1 - last[:, :-1]
+    with torch.no_grad():
+        slow_target = agent.twohot.mean(agent.slow_critic(feats[:, :-1]))
+    twohot = agent.twohot
+    loss = twohot.loss(logits[:, :-1], returns) + twohot.loss(logits[:, :-1], slow_target)
+    return (loss * valid).sum() / valid.sum().clamp(min=1)
+
+
 def dream_loss(agent: Agent, h0: torch.Tensor, z0: torch.Tensor, start_w: torch.Tensor, args: Args):
     """The actor-critic's part of an update: dreams from (h0, z0), then their loss (Algorithm 1, lines
     12-14)."""
@@ -748,6 +774,9 @@ def train_update(
     opts["wm"].step()
     h0, z0, start_w = dream_starts(h_entry.detach(), batch, args.imag_from)
     loss_actor, loss_critic, stats = losses["ac"](agent, h0, z0, start_w, args)
+    if args.critic_replay_coef:
+        stats["loss_critic_replay"] = replay_critic_loss(agent, h_entry.detach(), batch, args)
+        loss_critic = loss_critic + args.critic_replay_coef * stats["loss_critic_replay"]
     if check and not (torch.isfinite(loss_actor) and torch.isfinite(loss_critic)):
         raise FloatingPointError(f"non-finite actor-critic loss at env step {env_step:,}")
     opts["actor"].zero_grad(set_to_none=True)
@@ -1221,7 +1250,8 @@ def checkpoint_entries(run: Run) -> dict:
 # Ranges of this script's flags (check_settings, below the fence, adds the flags every agent has).
 RANGES = {
     ">= 1": "batch_size batch_length imag_horizon eval_every log_every",
-    ">= 0": "learning_starts video_every entropy_coef wm_z_coef wm_reward_coef wm_done_coef actor_mean_reg",
+    ">= 0": "learning_starts video_every entropy_coef wm_z_coef wm_reward_coef wm_done_coef actor_mean_reg"
+    " critic_replay_coef",
     "> 0": "save_minutes train_ratio wm_lr ac_lr",
     "[0, 1]": "lam slow_critic_decay return_norm_decay",
 }

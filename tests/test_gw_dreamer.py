@@ -704,6 +704,36 @@ def test_actor_critic_loss_against_the_formulas_written_out():
     assert stats["entropy"].item() == pytest.approx(0.7)
 
 
+def test_the_replay_critic_loss_fits_lambda_returns_of_the_replayed_rewards():
+    """--critic-replay-coef: on one replayed sequence of 5 entries whose entry 2 ends an episode and whose
+    transition 3 ends in termination, the targets written out (g = gamma, l = lambda): R_3 = r_3 (done),
+    R_2 = v_2 (no transition out of a final observation), R_1 = r_1 + g ((1 - l) v_2 + l R_2),
+    R_0 = r_0 + g ((1 - l) v_1 + l R_1), entry 2 left out of the mean. Fails if the returns run across
+    the episode's end, ignore the done flag, or bootstrap from the wrong entry."""
+    g, lam = 0.9, 0.8
+    v = torch.tensor([1.0, 2.0, 3.0, 4.0, 5.0])
+    r = torch.tensor([0.5, 1.5, 2.5, 3.5, 9.0])
+    agent = SimpleNamespace(
+        features=lambda h, z: h,
+        critic=lambda f: f,
+        slow_critic=lambda f: 0 * f,
+        twohot=SimpleNamespace(mean=lambda x: x[..., 0], loss=lambda x, t: (x[..., 0] - t) ** 2),
+    )
+    batch = {
+        "z": torch.zeros(1, 5, 3),
+        "r": r[None],
+        "d": torch.tensor([[0.0, 0.0, 0.0, 1.0, 0.0]]),
+        "last": torch.tensor([[0.0, 0.0, 1.0, 0.0, 0.0]]),
+    }
+    args = G.Args(env="robodesk", gamma=g, lam=lam).resolve()
+    loss = G.replay_critic_loss(agent, v[None, :, None], batch, args)
+    R3, R2 = r[3], v[2]
+    R1 = r[1] + g * ((1 - lam) * v[2] + lam * R2)
+    R0 = r[0] + g * ((1 - lam) * v[1] + lam * R1)
+    want = sum((v[t] - R) ** 2 + v[t] ** 2 for t, R in ((0, R0), (1, R1), (3, R3))) / 3
+    assert loss.item() == pytest.approx(want.item(), rel=1e-6)
+
+
 def test_eval_only_encodes_with_the_fusion_weights_of_the_dropped_modality(ss_run, pretrained, monkeypatch):
     """Every observation of an --eval-only run goes through the GW with the weights of --drop (vision:
     alpha_v 0, attr: alpha_attr 0). Fails if the evaluation ignores --drop."""
@@ -856,14 +886,15 @@ def test_dream_actions_read_their_states_as_constants():
     assert_actions_read_dreamt_states_as_constants(G.imagine, agent, h0, z0)
 
 
-def test_train_update_leaves_the_world_model_to_its_own_loss_under_dynamics_backprop():
+@pytest.mark.parametrize("critic_replay_coef", [0.0, 0.3])
+def test_train_update_leaves_the_world_model_to_its_own_loss_under_dynamics_backprop(critic_replay_coef):
     """The dream is differentiable in the actions, but only L_WM trains the world model: after an update
-    its gradients are those of L_WM alone on the same batch, and the critic's those of the critic loss.
-    Fails if the two actor-critic losses are back-propagated together into every network."""
+    its gradients are those of L_WM alone on the same batch, also with the critic's replay loss. Fails if
+    the two actor-critic losses are back-propagated together into every network."""
     agent, _, _ = continuous_agent()
     agent.float()
-    args = dataclasses.replace(G.Args(env="robodesk", batch_size=3, batch_length=5), imag_horizon=4)
-    args = args.resolve()
+    args = G.Args(env="robodesk", batch_size=3, batch_length=5, critic_replay_coef=critic_replay_coef)
+    args = dataclasses.replace(args, imag_horizon=4).resolve()
     replay = G.Replay(100, 1, 76, 5, 0)
     for t in range(30):
         replay.add(

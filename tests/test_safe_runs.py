@@ -355,6 +355,7 @@ def test_another_scripts_run_under_the_same_name_and_an_exported_policy_are_name
 # 6. Numbers that make no sense ----------
 BAD_FLAGS = [
     ("gw_dreamer.py", ["--total-steps", "-5"], "--total-steps -5: must be at least 1"),
+    ("gw_dreamer.py", ["--critic-replay-coef", "-0.3"], "--critic-replay-coef -0.3: must not be negative"),
     ("gw_dreamer.py", ["--buffer-size", "5"], "--buffer-size 5: must hold a replayed sequence"),
     ("gw_dreamer.py", ["--num-envs", "0"], "--num-envs 0: must be at least 1"),
     ("gw_dreamer.py", ["--train-ratio", "0"], "--train-ratio 0.0: must be positive"),
