@@ -61,6 +61,19 @@ def test_heads_read_sg_z_keeps_the_reward_loss_out_of_the_z_head():
     torch.testing.assert_close(sgz.wm.heads(h)[1], plain.wm.heads(h)[1])  # same forward values
 
 
+def test_no_value_slope_keeps_the_values_derivative_out_of_the_dream():
+    """--no-value-slope: the values give the dreamt states no gradient (the actor's dynamics gradient is the
+    rewards' alone), while the critic's own weights still get theirs. Fails if the critic reads the states
+    with their gradient."""
+    torch.manual_seed(0)
+    for slope in (True, False):
+        agent = X.experiment_agent(X.Args(value_slope=slope))("robodesk", 76, "twohot", cpu_preset=True)
+        h = torch.randn(4, 256, requires_grad=True)
+        agent.twohot.mean(agent.critic(h)).sum().backward()
+        assert (h.grad is not None and h.grad.abs().sum() > 0) == slope
+        assert agent.critic.net[0].weight.grad.abs().sum() > 0
+
+
 def test_zero_init_starts_reward_and_value_at_zero():
     agent = X.experiment_agent(X.Args(zero_init=True))("simple_shapes", 10, "twohot")
     h = torch.randn(4, 64)

@@ -8,7 +8,7 @@ script imports and runs; every other flag, the checkpoints and the logs are gw_d
     python benchmarks/experiments/gw_dreamer_experiments.py --ac-input hz --eval-only --checkpoint PATH
 
 Runs are named like gw_dreamer.py's with one suffix per experiment (``_hz``, ``_sgz``, ``_zinit``,
-``_attrz``), so they never mix with the paper's runs.
+``_attrz``, ``_noslope``), so they never mix with the paper's runs.
 """
 
 from __future__ import annotations
@@ -33,6 +33,10 @@ class Args(G.Args):
     acting and the world model's z in dreams (DreamerV3's and World Models' controller input)"""
     heads_read_sg_z: bool = False
     """the reward and done heads read sg(z_{t+1}), so their losses do not train the z head"""
+    value_slope: bool = True
+    """--no-value-slope: the critic reads the dreamt states as constants, so under dynamics backpropagation
+    the actor's gradient comes from the dreamt rewards alone (the lambda-return's values carry no derivative
+    with respect to the dream); the critic still learns as before"""
     zero_init: bool = False
     """the reward head's and the critic's output layers start at zero (DreamerV3)"""
     z_source: Literal["gw", "attributes"] = "gw"
@@ -47,6 +51,7 @@ def suffix(args: Args) -> str:
         + ("_hz" if args.ac_input == "hz" else "")
         + ("_sgz" if args.heads_read_sg_z else "")
         + ("_zinit" if args.zero_init else "")
+        + ("" if args.value_slope else "_noslope")
     )
 
 
@@ -59,11 +64,17 @@ def experiment_agent(args: Args) -> type[G.Agent]:
             feat = torch.cat([h_next, z_next.detach()], -1)
             return z_next, self.reward_head(feat), self.done_head(feat).squeeze(-1)
 
+    class ConstantInputCritic(G.Critic):
+        def forward(self, h):
+            return self.net(h.detach())
+
     class ExperimentAgent(G.Agent):
         def __init__(self, env, z_dim, reward_loss, return_norm_decay=0.99, cpu_preset=False):
             super().__init__(env, z_dim, reward_loss, return_norm_decay, cpu_preset)
             if args.heads_read_sg_z:
                 self.wm.__class__ = SgZWorldModel  # same parameters, other forward
+            if not args.value_slope:
+                self.critic.__class__ = ConstantInputCritic
             if args.zero_init:  # DreamerV3: reward and value predictions start at 0
                 for last in (self.wm.reward_head[-1], self.critic.net[-1]):
                     nn.init.zeros_(last.weight)
