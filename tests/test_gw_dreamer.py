@@ -790,7 +790,9 @@ def test_train_update_moves_the_slow_critic_by_one_minus_its_decay_toward_the_cr
         ),
     }
     opts = {k: torch.optim.SGD(getattr(agent, k).parameters(), lr=0.1) for k in ("wm", "actor", "critic")}
-    args = SimpleNamespace(batch_size=B, batch_length=T, imag_from="last", slow_critic_decay=0.98)
+    args = SimpleNamespace(
+        batch_size=B, batch_length=T, imag_from="last", slow_critic_decay=0.98, critic_replay_coef=0.0
+    )
     slow0 = [p.detach().clone() for p in agent.slow_critic.parameters()]
     critic0 = agent.critic.weight.detach().clone()
     G.train_update(agent, opts, replay, args, losses=losses)
