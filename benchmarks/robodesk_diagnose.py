@@ -18,6 +18,13 @@
    and dreamt by the world model from the agent's h and z there; the rank correlation of the seven
    5-step reward sums, true against dreamt (1: the world model orders the actions as the simulator
    does), and the spread of those sums across the actions.
+4. Pressing (push_green): in --press-episodes episodes from fixed starts, the share of steps with the light
+   on, the reward per agent step, the share of steps within 8 cm of the button and, within 4 cm, how often
+   the gripper action is closed / mid / open and how often the light is on for each; from states within
+   4 cm with the light off, the true and the dreamt 10-step reward of pushing down with the gripper
+   closed against keeping still.
+   --press-tolerance adds the scripted expert aimed off the button's centre at five gripper settings
+   (what pressing takes).
 
     python benchmarks/robodesk_diagnose.py \\
         checkpoints/robodesk/agents/gw_dreamer_gw_robodesk_push_green_s1.pt
@@ -46,6 +53,11 @@ class Args:
     """seed of the replay sampling"""
     counterfactual_states: int = 8
     """states of part 3 (0 skips it: it needs MuJoCo's renderer and the agent's VAEs + GW)"""
+    press_episodes: int = 4
+    """episodes of part 4 (fixed starts, seeds 700, 701, ...; 0 skips it)"""
+    press_tolerance: bool = False
+    """also print what pressing takes: the scripted expert aimed off the button's centre, at each gripper
+    setting (part 4's reference; the same for every checkpoint)"""
 
 
 @torch.no_grad()
@@ -177,6 +189,113 @@ def counterfactual_actions(path: str, n_states: int, follow: int = 4) -> dict:
     }
 
 
+GRIP = {"closed": (-1.0, -0.3), "mid": (-0.3, 0.3), "open": (0.3, 1.0)}  # gripper action (+1 opens)
+
+
+@torch.no_grad()
+def pressing(path: str, episodes: int) -> dict:
+    """Part 4: where the agent's own episodes spend their steps around the green button. The press bonus
+    (a quarter of the dense reward) needs the closed gripper pushed down within a few cm of the button
+    (--press-tolerance); hovering above it earns the distance part alone. Per step: horizontal distance
+    end effector to button, the gripper action, whether the light is on. Every 7th step within 4 cm with the
+    light off, ``hover_probe`` asks the simulator and the dream what pushing down would pay."""
+    import os
+
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    from envs.robodesk import RoboDeskEnv
+
+    ck = torch.load(path, weights_only=False, map_location="cpu")
+    args = G.Args(**{k: v for k, v in ck["args"].items() if k in G.Args.__dataclass_fields__}).resolve()
+    encoder, _ = G.load_frozen(args, torch.device("cpu"))
+    agent = G.Agent("robodesk", encoder.z_dim, args.reward_loss, args.return_norm_decay, args.cpu_preset)
+    agent.load_state_dict(ck["agent"])
+    env = RoboDeskEnv(
+        task="push_green", render_quality=args.render_quality, episode_length=args.episode_length
+    )
+    lo, hi = env.joint_bounds[6]
+    wrist_still = -(lo + hi) / (hi - lo)  # the wrist action whose step is 0
+    rows = []  # x, y offset, xy distance, height above the button (cm), gripper action, light, reward
+    probes = []  # (true, dreamt) 10-step reward sums of "down" and "still", true light share of "down"
+    for ep in range(episodes):
+        obs, _ = env.reset(seed=700 + ep)
+        h, done, t = torch.zeros(1, agent.wm.hidden), False, 0
+        while not done:
+            z = encoder({k: v[None] for k, v in obs.items()})
+            a = agent.actor.act(agent.features(h, z))
+            d = 100 * (env.data.site_xpos[env._ee_site] - env._xpos("green_button"))
+            if np.linalg.norm(d[:2]) < 4 and not env.task_reward("success") and t % 7 == 0 and t < 480:
+                down = np.array([0, 0, -1, wrist_still, -1], np.float32)
+                still = np.array([0, 0, 0, wrist_still, float(a[0, 4])], np.float32)
+                probes.append(hover_probe(env, agent, h, z, (down, still)))
+            obs, r, term, trunc, _ = env.step(a[0].numpy())
+            t += 1
+            rows.append((*d[:2], np.linalg.norm(d[:2]), d[2], float(a[0, 4]), env.task_reward("success"), r))
+            h, done = agent.wm.step(h, z, a), term or trunc
+    env.close()
+    dx, dy, xy, dz, grip, pressed, r = np.array(rows).T
+    out = {"pressed": pressed.mean(), "reward": r.mean(), "near": (xy < 8).mean()}
+    for name, (lo, hi) in GRIP.items():
+        m = (xy < 4) & (grip >= lo) & (grip <= hi)
+        out[f"share_{name}"], out[f"pressed_{name}"] = m.sum() / max((xy < 4).sum(), 1), pressed[m].mean()
+    closed = (xy < 4) & (grip < GRIP["closed"][1])
+    for name, m in (("on", closed & (pressed > 0)), ("off", closed & (pressed == 0))):
+        out[f"height_{name}"] = np.median(dz[m]) if m.any() else float("nan")
+        out[f"offset_{name}"] = np.array([dx[m].mean(), dy[m].mean()]) if m.any() else np.full(2, np.nan)
+    if probes:
+        out["probes"] = len(probes)
+        true, dreamt, light = zip(*probes, strict=True)
+        out |= {"probe_true": np.mean(true, 0), "probe_dream": np.mean(dreamt, 0)}
+        out["probe_light"] = np.mean(light)
+    return out
+
+
+@torch.no_grad()
+def hover_probe(env, agent, h, z, plans, steps: int = 10) -> tuple:
+    """From a state near the button with the light off: the true and the dreamt reward over ``steps`` agent
+    steps of each fixed action in ``plans`` (the dream from the agent's own h and z there), and the
+    share of those steps with the light on for the first plan. The simulator is put back afterwards."""
+    qpos, qvel, count = env.data.qpos.copy(), env.data.qvel.copy(), env._num_steps
+    true, dreamt, light = [], [], 0.0
+    for i, action in enumerate(plans):
+        env.set_state(qpos, qvel)
+        env._num_steps = count
+        on = [(env.step(action)[1], env.task_reward("success")) for _ in range(steps)]
+        true.append(sum(r for r, _ in on))
+        light = np.mean([x for _, x in on]) if i == 0 else light
+        hh, zz, total = h, z, 0.0
+        for _ in range(steps):
+            hh = agent.wm.step(hh, zz, torch.as_tensor(action)[None])
+            zz, r_out, _ = agent.wm.heads(hh)
+            total += float(agent.reward_dec.value(r_out))
+        dreamt.append(total)
+    env.set_state(qpos, qvel)
+    env._num_steps = count
+    return np.array(true), np.array(dreamt), light
+
+
+def press_tolerance() -> None:
+    """The scripted push_green expert with its target moved off the button's centre, at four gripper
+    settings: the share of steps 60-120 with the light on (the press has settled by step 60)."""
+    import gymnasium as gym
+
+    from envs.robodesk_experts import WaypointExpert
+
+    env = gym.make("RoboDesk-v0", task="push_green", render_quality="fast")
+    for grip in (-1.0, -0.3, 0.0, 0.3, 1.0):
+        shares = []
+        for dx, dy in ((0, 0), (0.02, 0), (0.04, 0), (0.06, 0), (0, 0.02), (0, 0.04)):
+
+            def plan(e, dx=dx, dy=dy, grip=grip):
+                b = e._xpos("green_button") + [dx, dy, 0.0]
+                return [(b + [0, 0, 0.12], grip, 0.02), (b + [0, 0, 0.035], grip, 0.0)]
+
+            expert, _ = WaypointExpert(env, plan), env.reset(seed=10_000)
+            on = [env.step(expert.act(env))[4]["success"] for _ in range(120)]
+            shares.append(f"({100 * dx:.0f}, {100 * dy:.0f}) cm {np.mean(on[60:]):.2f}")
+        print(f"  expert, gripper action {grip:+.1f}, light on at offset " + ", ".join(shares))
+    env.close()
+
+
 def main(args: Args) -> list[dict]:
     torch.set_num_threads(1)
     out = []
@@ -205,7 +324,30 @@ def main(args: Args) -> list[dict]:
                 f"(s.e.m.); spread across them {c['spread_true']:.2f} true, {c['spread_dream']:.2f} dreamt"
             )
             r |= c
+        if args.press_episodes:
+            p = pressing(path, args.press_episodes)
+            print(
+                f"  pressing ({args.press_episodes} episodes): light on in {100 * p['pressed']:.0f}% of the "
+                f"steps, reward {p['reward']:.2f} per agent step, {100 * p['near']:.0f}% of the steps within "
+                "8 cm of the button; within 4 cm, gripper action closed / mid / open in "
+                + " / ".join(f"{100 * p['share_' + g]:.0f}%" for g in GRIP)
+                + " of the steps, light on there in "
+                + " / ".join(f"{100 * p['pressed_' + g]:.0f}%" for g in GRIP)
+                + f"; closed there, the end effector's median height above the button {p['height_on']:.1f} "
+                f"cm with the light on, {p['height_off']:.1f} cm with it off, mean x, y offset "
+                f"{np.round(p['offset_on'], 1)} and {np.round(p['offset_off'], 1)} cm"
+            )
+            if "probes" in p:
+                print(
+                    f"  from {p['probes']} states within 4 cm with the light off, 10 agent steps of 'down "
+                    f"with the gripper closed' / 'still': true reward {np.round(p['probe_true'], 1)}, dreamt "
+                    f"{np.round(p['probe_dream'], 1)}; light on in {100 * p['probe_light']:.0f}% of the "
+                    "steps going down"
+                )
+            r |= p
         out.append(r)
+    if args.press_tolerance:
+        press_tolerance()
     return out
 
 
