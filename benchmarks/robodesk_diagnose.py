@@ -11,7 +11,8 @@
 2. The world model's reward on the agent's own data: after 64 real steps of a replayed sequence, the
    next 20 rewards predicted one step ahead (real z read each step) and open loop (its own z fed back,
    as in a dream) with the actions that were taken, against the real rewards: mean |r_hat - r| at
-   horizons 1, 5, 10 and 20, and the correlation of the 20-step sums.
+   horizons 1, 5, 10 and 20, and the correlation of the 20-step sums; the one-step predictions at the
+   reward's upward jumps (push_green: the light coming on).
 3. Whether the world model knows what other actions would do: in --counterfactual-states states reached
    by the agent's own policy (fresh episodes, fast images), seven first actions (none, and +-1 along
    each of x, y, z), each followed by 4 steps without action, run in the simulator from the same state
@@ -78,7 +79,7 @@ def saturation(path: str, sequences: int, seed: int) -> dict:
     mean, std = torch.tanh(m), 0.9 * torch.sigmoid(s + 2.0) + 0.1
     count = int(ck["replay"]["count"][0])
     stored = ck["replay"]["a"][0][:count][-2000:]
-    out = open_loop_rewards(agent, ck["replay"], seed)
+    out = open_loop_rewards(agent, ck["replay"], seed) | press_onsets(agent, ck["replay"])
     first = ck["replay"]["first"][0][:count]
     actions = ck["replay"]["a"][0][:count]
     flips = []  # per 2,500 agent steps (10,000 frames): consecutive x/y/z actions of opposite sign
@@ -95,6 +96,32 @@ def saturation(path: str, sequences: int, seed: int) -> dict:
         "std": std.mean(0).numpy(),
         "stored_at_bound": (np.abs(stored) >= 0.999).mean(0),
         "reversals": np.array(flips),
+    }
+
+
+@torch.no_grad()
+def press_onsets(agent, replay: dict, newest: int = 20_000) -> dict:
+    """One-step reward predictions (the real z read at every step) over the newest entries of the first
+    replay stream, at the steps where the reward jumps by more than 0.5 (push_green: the light comes on)
+    and elsewhere: real and predicted means."""
+    count = int(replay["count"][0])
+    lo = max(0, count - newest)
+    z, a, r, first = (torch.as_tensor(replay[k][0][lo:count]) for k in ("z", "a", "r", "first"))
+    h, pred = torch.zeros(1, agent.wm.hidden), []
+    for t in range(len(z)):
+        h = torch.zeros_like(h) if first[t] else h
+        h = agent.wm.step(h, z[t : t + 1], a[t : t + 1])
+        pred.append(float(agent.reward_dec.value(agent.wm.heads(h)[1])))
+    pred, r, first = np.array(pred), r.numpy(), first.numpy()
+    jump = np.r_[0.0, np.diff(r)] * np.r_[0.0, first[1:] == 0]
+    onset, rest = jump > 0.5, np.abs(jump) < 0.2
+    before = np.r_[onset[1:], False]  # the step before each onset
+    return {
+        "onsets": int(onset.sum()),
+        "onset_real": r[onset].mean() if onset.any() else float("nan"),
+        "onset_pred": pred[onset].mean() if onset.any() else float("nan"),
+        "onset_before": r[before].mean() if onset.any() else float("nan"),
+        "rest_err": np.abs(pred - r)[rest].mean(),
     }
 
 
@@ -226,7 +253,7 @@ def pressing(path: str, episodes: int) -> dict:
             if np.linalg.norm(d[:2]) < 4 and not env.task_reward("success") and t % 7 == 0 and t < 480:
                 down = np.array([0, 0, -1, wrist_still, -1], np.float32)
                 still = np.array([0, 0, 0, wrist_still, float(a[0, 4])], np.float32)
-                probes.append(hover_probe(env, agent, h, z, (down, still)))
+                probes.append(hover_probe(env, agent, encoder, h, z, (down, still)))
             obs, r, term, trunc, _ = env.step(a[0].numpy())
             t += 1
             rows.append((*d[:2], np.linalg.norm(d[:2]), d[2], float(a[0, 4]), env.task_reward("success"), r))
@@ -243,34 +270,51 @@ def pressing(path: str, episodes: int) -> dict:
         out[f"offset_{name}"] = np.array([dx[m].mean(), dy[m].mean()]) if m.any() else np.full(2, np.nan)
     if probes:
         out["probes"] = len(probes)
-        true, dreamt, light = zip(*probes, strict=True)
+        true, dreamt, light, steps_true, steps_dream, moved_true, moved_dream = zip(*probes, strict=True)
         out |= {"probe_true": np.mean(true, 0), "probe_dream": np.mean(dreamt, 0)}
+        out |= {"probe_steps_true": np.mean(steps_true, 0), "probe_steps_dream": np.mean(steps_dream, 0)}
+        out |= {"probe_moved_true": np.mean(moved_true, 0), "probe_moved_dream": np.mean(moved_dream, 0)}
         out["probe_light"] = np.mean(light)
     return out
 
 
 @torch.no_grad()
-def hover_probe(env, agent, h, z, plans, steps: int = 10) -> tuple:
+def hover_probe(env, agent, encoder, h, z, plans, steps: int = 10) -> tuple:
     """From a state near the button with the light off: the true and the dreamt reward over ``steps`` agent
-    steps of each fixed action in ``plans`` (the dream from the agent's own h and z there), and the
-    share of those steps with the light on for the first plan. The simulator is put back afterwards."""
+    steps of each fixed action in ``plans`` (the dream from the agent's own h and z there); for the first
+    plan, the share of steps with the light on, the true and dreamt reward of each step, and how far the
+    end effector moved (x, y, z in cm; the dream's read from its z through the GW's attribute decoder).
+    The simulator is put back afterwards."""
     qpos, qvel, count = env.data.qpos.copy(), env.data.qvel.copy(), env._num_steps
-    true, dreamt, light = [], [], 0.0
+    ee0 = env.data.site_xpos[env._ee_site].copy()
+    true, dreamt, first = [], [], {}
     for i, action in enumerate(plans):
         env.set_state(qpos, qvel)
         env._num_steps = count
         on = [(env.step(action)[1], env.task_reward("success")) for _ in range(steps)]
         true.append(sum(r for r, _ in on))
-        light = np.mean([x for _, x in on]) if i == 0 else light
-        hh, zz, total = h, z, 0.0
+        hh, zz, dreamt_steps = h, z, []
         for _ in range(steps):
             hh = agent.wm.step(hh, zz, torch.as_tensor(action)[None])
             zz, r_out, _ = agent.wm.heads(hh)
-            total += float(agent.reward_dec.value(r_out))
-        dreamt.append(total)
+            dreamt_steps.append(float(agent.reward_dec.value(r_out)))
+        dreamt.append(sum(dreamt_steps))
+        if i == 0:
+            moved_true = 100 * (env.data.site_xpos[env._ee_site] - ee0)
+            moved_dream = 100 * (decoded_end_effector(encoder, zz) - decoded_end_effector(encoder, z))
+            moved_true, moved_dream = (np.r_[np.abs(m[:2]), m[2]] for m in (moved_true, moved_dream))
+            first = dict(light=np.mean([x for _, x in on]), steps_true=[r for r, _ in on])
+            first |= dict(steps_dream=dreamt_steps, moved_true=moved_true, moved_dream=moved_dream)
     env.set_state(qpos, qvel)
     env._num_steps = count
-    return np.array(true), np.array(dreamt), light
+    return (np.array(true), np.array(dreamt), *first.values())
+
+
+def decoded_end_effector(encoder, z: torch.Tensor) -> np.ndarray:
+    """The end-effector position (m) that z broadcasts to the attributes: d_attr, then the attribute VAE's
+    decoder, un-normalised (the end effector is attributes 18-20 of RoboDeskEnv.attributes)."""
+    attr = encoder.vae_attr.decoder(encoder.gw.d["attr"](z)) * encoder.attr_std + encoder.attr_mean
+    return attr[0, 18:21].numpy()
 
 
 def press_tolerance() -> None:
@@ -316,6 +360,11 @@ def main(args: Args) -> list[dict]:
             f"|r_hat - r| at horizons 1/5/10/20 one step ahead {np.round(r['one_step_err'], 3)}, open loop "
             f"{np.round(r['open_loop_err'], 3)}; 20-step sums correlate {r['return_corr']:.3f} (open loop)"
         )
+        print(
+            f"  one step ahead at the {r['onsets']} reward jumps > 0.5 of the newest 20,000 entries "
+            f"(push_green: the light comes on): real {r['onset_real']:.2f} after {r['onset_before']:.2f}, "
+            f"predicted {r['onset_pred']:.2f}; elsewhere |r_hat - r| {r['rest_err']:.3f}"
+        )
         if args.counterfactual_states:
             c = counterfactual_actions(path, args.counterfactual_states)
             print(
@@ -343,6 +392,12 @@ def main(args: Args) -> list[dict]:
                     f"with the gripper closed' / 'still': true reward {np.round(p['probe_true'], 1)}, dreamt "
                     f"{np.round(p['probe_dream'], 1)}; light on in {100 * p['probe_light']:.0f}% of the "
                     "steps going down"
+                )
+                print(
+                    "  going down, reward at steps 1-10: true "
+                    f"{np.round(p['probe_steps_true'], 2)}, dreamt {np.round(p['probe_steps_dream'], 2)}; "
+                    f"end effector moved |x|, |y|, z (cm, mean over states): true "
+                    f"{np.round(p['probe_moved_true'], 1)}, dreamt {np.round(p['probe_moved_dream'], 1)}"
                 )
             r |= p
         out.append(r)
