@@ -159,9 +159,9 @@ def open_loop_rewards(
     }
 
 
-@torch.no_grad()
-def counterfactual_actions(path: str, n_states: int, follow: int = 4) -> dict:
-    """Part 3: true and dreamt 5-step rewards of seven first actions from states the policy reaches."""
+def agent_in_simulator(path: str, task: str | None = None):
+    """Parts 3 and 4: a checkpoint's agent, the frozen VAEs + GW it reads, and a RoboDesk env of its task
+    (or ``task``) rendering the images its GW was trained on."""
     import os
 
     os.environ.setdefault("MUJOCO_GL", "egl")
@@ -172,7 +172,16 @@ def counterfactual_actions(path: str, n_states: int, follow: int = 4) -> dict:
     encoder, _ = G.load_frozen(args, torch.device("cpu"))
     agent = G.Agent("robodesk", encoder.z_dim, args.reward_loss, args.return_norm_decay, args.cpu_preset)
     agent.load_state_dict(ck["agent"])
-    env = RoboDeskEnv(task=args.task, render_quality=args.render_quality, episode_length=args.episode_length)
+    env = RoboDeskEnv(
+        task=task or args.task, render_quality=args.render_quality, episode_length=args.episode_length
+    )
+    return agent, encoder, env
+
+
+@torch.no_grad()
+def counterfactual_actions(path: str, n_states: int, follow: int = 4) -> dict:
+    """Part 3: true and dreamt 5-step rewards of seven first actions from states the policy reaches."""
+    agent, encoder, env = agent_in_simulator(path)
     firsts = [np.zeros(5, np.float32)]
     for d in range(3):
         for sign in (1.0, -1.0):
@@ -226,19 +235,7 @@ def pressing(path: str, episodes: int) -> dict:
     (--press-tolerance); hovering above it earns the distance part alone. Per step: horizontal distance
     end effector to button, the gripper action, whether the light is on. Every 7th step within 4 cm with the
     light off, ``hover_probe`` asks the simulator and the dream what pushing down would pay."""
-    import os
-
-    os.environ.setdefault("MUJOCO_GL", "egl")
-    from envs.robodesk import RoboDeskEnv
-
-    ck = torch.load(path, weights_only=False, map_location="cpu")
-    args = G.Args(**{k: v for k, v in ck["args"].items() if k in G.Args.__dataclass_fields__}).resolve()
-    encoder, _ = G.load_frozen(args, torch.device("cpu"))
-    agent = G.Agent("robodesk", encoder.z_dim, args.reward_loss, args.return_norm_decay, args.cpu_preset)
-    agent.load_state_dict(ck["agent"])
-    env = RoboDeskEnv(
-        task="push_green", render_quality=args.render_quality, episode_length=args.episode_length
-    )
+    agent, encoder, env = agent_in_simulator(path, task="push_green")
     lo, hi = env.joint_bounds[6]
     wrist_still = -(lo + hi) / (hi - lo)  # the wrist action whose step is 0
     rows = []  # x, y offset, xy distance, height above the button (cm), gripper action, light, reward
