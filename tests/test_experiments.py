@@ -103,3 +103,47 @@ def test_attribute_control_feeds_the_true_attributes(pretrained, pretrained_robo
     flags += " --eval-episodes 1 --video-every 0 --eval-every 1000 --train-ratio 10 --imag-horizon 3"
     log = run_script(script, tmp_path, "--checkpoint-dir", str(pretrained[0] / "ck"), *flags.split())
     assert "done:" in log and (tmp_path / "runs" / "gw_dreamer_gw_attrz_simple_shapes_s1").is_dir()
+
+
+def robodesk_batch(B: int = 3, T: int = 12) -> dict[str, torch.Tensor]:
+    torch.manual_seed(1)
+    batch = {
+        "z": torch.rand(B, T + 1, 76) * 2 - 1,
+        "a": torch.rand(B, T + 1, 5) * 2 - 1,
+        "r": torch.rand(B, T + 1) * 4,
+    }
+    batch |= {k: torch.zeros(B, T + 1) for k in ("d", "first", "last")}
+    batch["last"][1, 5], batch["first"][1, 6] = 1.0, 1.0  # an episode ends inside sequence 1
+    return batch
+
+
+def test_open_loop_loss_of_one_step_is_the_papers_loss_and_longer_ones_feed_z_back():
+    """--wm-open-loop: with K = 1 from every entry it is the one-step loss; with K > 1 the later steps read
+    the world model's own z (their loss reaches the z head through it) and stop at an episode's end."""
+    torch.manual_seed(0)
+    agent = G.Agent("robodesk", 76, "twohot", cpu_preset=True)
+    batch = robodesk_batch()
+    args = X.Args(env="robodesk", cpu_preset=True, wm_open_loop=1, wm_open_loop_stride=1)
+    loss, _, h_entry, _ = G.world_model_loss(agent.wm, agent.reward_dec, batch, args)
+    loss_open, terms = X.open_loop_loss(agent.wm, agent.reward_dec, batch, h_entry, args)
+    torch.testing.assert_close(loss_open, loss)
+    # K = 2 from entry 0 only: step 2's z loss reaches the z head's weights through the fed-back z_1
+    args = X.Args(env="robodesk", cpu_preset=True, wm_open_loop=2, wm_open_loop_stride=100)
+    h0 = torch.zeros(3, agent.wm.hidden)
+    z1 = agent.wm.heads(agent.wm.step(h0, batch["z"][:, 0], batch["a"][:, 0]))[0]
+    z2_fed = agent.wm.heads(
+        agent.wm.step(agent.wm.step(h0, batch["z"][:, 0], batch["a"][:, 0]), z1, batch["a"][:, 1])
+    )[0]
+    z2_real = agent.wm.heads(
+        agent.wm.step(
+            agent.wm.step(h0, batch["z"][:, 0], batch["a"][:, 0]), batch["z"][:, 1], batch["a"][:, 1]
+        )
+    )[0]
+    _, terms = X.open_loop_loss(agent.wm, agent.reward_dec, batch, torch.zeros(3, 13, agent.wm.hidden), args)
+    z_loss = (((z1 - batch["z"][:, 1]) ** 2).sum(-1) + ((z2_fed - batch["z"][:, 2]) ** 2).sum(-1)).sum() / 6
+    torch.testing.assert_close(terms["loss_z_open"], z_loss)
+    assert not torch.allclose(z2_fed, z2_real)
+    # a start whose window crosses an episode's end counts only up to that end
+    batch["last"][:, 0] = 1.0
+    _, terms = X.open_loop_loss(agent.wm, agent.reward_dec, batch, torch.zeros(3, 13, agent.wm.hidden), args)
+    assert terms["loss_z_open"] == 0

@@ -6,9 +6,10 @@ script imports and runs; every other flag, the checkpoints and the logs are gw_d
     python benchmarks/experiments/gw_dreamer_experiments.py --heads-read-sg-z --seed 8
     python benchmarks/experiments/gw_dreamer_experiments.py --z-source attributes   # the control
     python benchmarks/experiments/gw_dreamer_experiments.py --ac-input hz --eval-only --checkpoint PATH
+    python benchmarks/experiments/gw_dreamer_experiments.py --env robodesk --cpu-preset --wm-open-loop 10
 
 Runs are named like gw_dreamer.py's with one suffix per experiment (``_hz``, ``_sgz``, ``_zinit``,
-``_attrz``, ``_noslope``), so they never mix with the paper's runs.
+``_attrz``, ``_noslope``, ``_ol10``), so they never mix with the paper's runs.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ from typing import Literal
 import numpy as np
 import torch
 import torch.nn as nn
+import torch.nn.functional as F
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 import gw_dreamer as G  # noqa: E402
@@ -39,6 +41,16 @@ class Args(G.Args):
     with respect to the dream); the critic still learns as before"""
     zero_init: bool = False
     """the reward head's and the critic's output layers start at zero (DreamerV3)"""
+    wm_open_loop: int = 0
+    """K > 0: the world model's loss adds a K-step open-loop term: from every --wm-open-loop-stride-th
+    replayed state h_t, K steps with its own predicted z fed back and the actions that were taken, the same
+    z, reward and done losses against the real z_{t+k}, r and d (averaged over k; gradients through the
+    fed-back z). A dream is open loop for 20 steps, while the paper's loss trains one step from the real z
+    only"""
+    wm_open_loop_stride: int = 8
+    """replayed entries between two starts of the open-loop term (8: 8 starts per sequence of 64)"""
+    wm_open_loop_coef: float = 1.0
+    """weight of the open-loop term against the one-step loss"""
     z_source: Literal["gw", "attributes"] = "gw"
     """gw: the paper's z_t. attributes (Simple Shapes only): z_t is the true attribute vector (its first
     10 entries, clipped to [-1, 1]) instead of the GW's, which tests the world model and actor-critic
@@ -52,7 +64,46 @@ def suffix(args: Args) -> str:
         + ("_sgz" if args.heads_read_sg_z else "")
         + ("_zinit" if args.zero_init else "")
         + ("" if args.value_slope else "_noslope")
+        + (f"_ol{args.wm_open_loop}" if args.wm_open_loop else "")
     )
+
+
+def open_loop_loss(wm, reward_dec, batch: dict[str, torch.Tensor], h_entry: torch.Tensor, args: Args):
+    """--wm-open-loop K: the world model's losses after k = 1..K steps of dreaming along the replayed
+    actions from the teacher-forced h_t of every stride-th entry t. A start's step k counts while no
+    episode ended in between (no transition out of an episode's final observation)."""
+    K, z, a, last = args.wm_open_loop, batch["z"], batch["a"], batch["last"]
+    r, d = batch["r"] - args.reward_offset, batch["d"]
+    B, T1, _ = z.shape
+    starts = torch.arange(0, T1 - K, args.wm_open_loop_stride, device=z.device)
+    if len(starts) == 0:
+        raise G.UsageError(f"--wm-open-loop {K} needs --batch-length above {K}")
+    h, z_k = h_entry[:, starts].flatten(0, 1), z[:, starts].flatten(0, 1)
+    alive = torch.ones(h.shape[0], device=z.device)
+    loss_z = loss_r = loss_d = n = 0.0
+    for k in range(K):
+        t = starts + k
+        alive = alive * (1 - last[:, t].flatten())
+        h = wm.step(h, z_k, a[:, t].flatten(0, 1))
+        z_k, r_out, d_logit = wm.heads(h)
+        loss_z = loss_z + (((z_k - z[:, t + 1].flatten(0, 1)) ** 2).sum(-1) * alive).sum()
+        loss_r = loss_r + (reward_dec.loss(r_out, r[:, t].flatten()) * alive).sum()
+        bce = F.binary_cross_entropy_with_logits(d_logit, d[:, t].flatten(), reduction="none")
+        loss_d = loss_d + (bce * alive).sum()
+        n = n + alive.sum()
+    n = n.clamp(min=1)
+    loss_z, loss_r, loss_d = loss_z / n, loss_r / n, loss_d / n
+    loss = args.wm_z_coef * loss_z + args.wm_reward_coef * loss_r + args.wm_done_coef * loss_d
+    return loss, {"loss_z_open": loss_z, "loss_r_open": loss_r}
+
+
+def world_model_loss(wm, reward_dec, batch, args):
+    """gw_dreamer.world_model_loss, plus --wm-open-loop's term when asked."""
+    loss, terms, h_entry, valid = G.world_model_loss(wm, reward_dec, batch, args)
+    if args.wm_open_loop:
+        loss_open, terms_open = open_loop_loss(wm, reward_dec, batch, h_entry, args)
+        loss, terms = loss + args.wm_open_loop_coef * loss_open, terms | terms_open
+    return loss, terms, h_entry, valid
 
 
 def experiment_agent(args: Args) -> type[G.Agent]:
@@ -123,11 +174,13 @@ def main(args: Args) -> dict:
     saved = {name: getattr(G, name) for name in patches}
     for name, value in patches.items():
         setattr(G, name, value)
+    G.EAGER["wm"] = world_model_loss  # train_update's losses (and --compile's)
     try:
         return G.main(args)
     finally:
         for name, value in saved.items():
             setattr(G, name, value)
+        G.EAGER["wm"] = G.world_model_loss
 
 
 if __name__ == "__main__":
