@@ -4,6 +4,7 @@ with one."""
 
 import sys
 
+import numpy as np
 import pytest
 import torch
 from conftest import ROOT, run_script, tiny_agent_args
@@ -147,3 +148,29 @@ def test_open_loop_loss_of_one_step_is_the_papers_loss_and_longer_ones_feed_z_ba
     batch["last"][:, 0] = 1.0
     _, terms = X.open_loop_loss(agent.wm, agent.reward_dec, batch, torch.zeros(3, 13, agent.wm.hidden), args)
     assert terms["loss_z_open"] == 0
+
+
+def test_recent_fraction_draws_that_share_of_sequences_from_the_newest_steps():
+    """--recent-fraction 0.5 --recent-window 30: half of each batch ends among the 30 newest stored steps of
+    its stream (the stored z counts the steps), the other half is the paper's uniform replay; at 0 the
+    batches are exactly the paper's."""
+    replay, plain = (cls(400, 2, 1, 5, seed=3) for cls in (X.RecentReplay, G.Replay))
+    for r in (replay, plain):
+        for t in range(300):  # stream 0 holds 0..299, stream 1 holds 1000..1299
+            r.add(
+                [0, 1],
+                np.array([[t], [1000 + t]], np.float32),
+                np.zeros((2, 5)),
+                [0, 0],
+                [0, 0],
+                [0, 0],
+                [0, 0],
+            )
+    X.RecentReplay.fraction, X.RecentReplay.window = 0.0, 30
+    for key, v in replay.sample(8, 6).items():
+        np.testing.assert_array_equal(v, plain.sample(8, 6)[key])
+    X.RecentReplay.fraction = 0.5
+    z = replay.sample(64, 6)["z"][..., 0] % 1000
+    assert (z[:32] >= 270).all() and (np.diff(z, axis=1) == 1).all()
+    assert (z[32:, 0] < 270).mean() > 0.5  # the rest spread over the whole stream
+    X.RecentReplay.fraction, X.RecentReplay.window = 0.0, 5000

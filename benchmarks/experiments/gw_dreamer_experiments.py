@@ -51,6 +51,12 @@ class Args(G.Args):
     """replayed entries between two starts of the open-loop term (8: 8 starts per sequence of 64)"""
     wm_open_loop_coef: float = 1.0
     """weight of the open-loop term against the one-step loss"""
+    recent_fraction: float = 0.0
+    """a share of each batch's sequences that start among the newest --recent-window stored steps of their
+    stream (the rest uniform, as the paper's replay): the world model sees the policy's newest states more
+    often than the older ones it has replayed hundreds of times"""
+    recent_window: int = 5000
+    """stored steps per stream that count as recent for --recent-fraction"""
     z_source: Literal["gw", "attributes"] = "gw"
     """gw: the paper's z_t. attributes (Simple Shapes only): z_t is the true attribute vector (its first
     10 entries, clipped to [-1, 1]) instead of the GW's, which tests the world model and actor-critic
@@ -65,7 +71,34 @@ def suffix(args: Args) -> str:
         + ("_zinit" if args.zero_init else "")
         + ("" if args.value_slope else "_noslope")
         + (f"_ol{args.wm_open_loop}" if args.wm_open_loop else "")
+        + (f"_rec{args.recent_fraction:g}" if args.recent_fraction else "")
     )
+
+
+class RecentReplay(G.Replay):
+    """gw_dreamer.Replay whose batches draw --recent-fraction of their sequences from the newest
+    --recent-window stored steps of their stream."""
+
+    fraction, window = 0.0, 5000
+
+    def sample(self, batch: int, length: int) -> dict[str, np.ndarray]:
+        n_recent = int(round(self.fraction * batch))
+        out = super().sample(batch, length)
+        if n_recent == 0:
+            return out
+        envs_ = self.rng.integers(0, self.n, n_recent)
+        filled = np.minimum(self.count[envs_], self.cap)
+        window = np.minimum(filled, max(self.window, length + 1))
+        newest = (self.pos[envs_] - 1) % self.cap  # the last written entry
+        back = (self.rng.random(n_recent) * (window - length)).astype(
+            np.int64
+        )  # distance of the window's end
+        start = newest - length - back
+        idx = (start[:, None] + np.arange(length + 1)[None]) % self.cap
+        rows = envs_[:, None]
+        for k in out:
+            out[k][:n_recent] = getattr(self, k)[rows, idx]
+        return out
 
 
 def open_loop_loss(wm, reward_dec, batch: dict[str, torch.Tensor], h_entry: torch.Tensor, args: Args):
@@ -166,7 +199,9 @@ def main(args: Args) -> dict:
             encoder.__class__ = AttributeEncoder
         return encoder, paths
 
+    RecentReplay.fraction, RecentReplay.window = args.recent_fraction, args.recent_window
     patches = {
+        "Replay": RecentReplay if args.recent_fraction else G.Replay,
         "Agent": experiment_agent(args),
         "load_frozen": load_frozen,
         "run_name": lambda a, model: paper_run_name(a, model + suffix(a)),

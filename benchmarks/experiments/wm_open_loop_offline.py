@@ -53,6 +53,10 @@ class Args:
     """world-model updates of each variant"""
     stride: int = 8
     """--wm-open-loop-stride"""
+    recent_fraction: float = 0.0
+    """--recent-fraction of the training batches"""
+    recent_window: int = 5000
+    """--recent-window"""
     fresh: bool = False
     """start from a freshly initialised world model instead of the checkpoint's"""
     windows: int = 512
@@ -73,9 +77,11 @@ def load(path: str):
 
 
 def replay_of(ck: dict, args, seed: int, leave_out: int = 0) -> G.Replay:
-    """The run's replay, without its newest ``leave_out`` entries (a buffer that has not wrapped)."""
+    """The run's replay, without its newest ``leave_out`` entries (a buffer that has not wrapped), sampled
+    as --recent-fraction asks."""
     z_dim = ck["replay"]["z"].shape[-1]
-    replay = G.Replay(args.buffer_size, args.num_envs, z_dim, G.SIZES["robodesk"]["actions"], seed)
+    X.RecentReplay.fraction, X.RecentReplay.window = args.recent_fraction, args.recent_window
+    replay = X.RecentReplay(args.buffer_size, args.num_envs, z_dim, G.SIZES["robodesk"]["actions"], seed)
     state = dict(ck["replay"])
     if leave_out:
         if (state["count"] >= replay.cap).any():
@@ -222,7 +228,11 @@ def main(a: Args) -> None:
         agent = G.Agent("robodesk", encoder.z_dim, run_args.reward_loss, run_args.return_norm_decay, True)
         if not a.fresh:
             agent.load_state_dict(ck["agent"])
-        args = X.Args(**{**vars(run_args), "wm_open_loop": k, "wm_open_loop_stride": a.stride})
+        args = X.Args(
+            **vars(run_args)
+            | {"wm_open_loop": k, "wm_open_loop_stride": a.stride}
+            | {"recent_fraction": a.recent_fraction, "recent_window": a.recent_window}
+        )
         if k == a.k[0]:
             print("before:", fmt(evaluate(agent, encoder, windows, args.reward_offset)))
         s = train(agent, replay_of(ck, args, a.seed, leave_out), args, a.updates)
