@@ -1,6 +1,7 @@
 """GW-Dreamer with settings that are not the paper's model: the suspects screened for the reliability of
-the default (docs/experiments.md) and one control. Each flag changes one thing of gw_dreamer.py, which this
-script imports and runs; every other flag, the checkpoints and the logs are gw_dreamer.py's.
+the default (docs/experiments.md; the RoboDesk world-model ones in docs/gw_dreamer.md) and one control.
+Each flag changes one thing of gw_dreamer.py, which this script imports and runs; every other flag, the
+checkpoints and the logs are gw_dreamer.py's.
 
     python benchmarks/experiments/gw_dreamer_experiments.py --env simple_shapes --ac-input hz
     python benchmarks/experiments/gw_dreamer_experiments.py --heads-read-sg-z --seed 8
@@ -9,7 +10,7 @@ script imports and runs; every other flag, the checkpoints and the logs are gw_d
     python benchmarks/experiments/gw_dreamer_experiments.py --env robodesk --cpu-preset --wm-open-loop 10
 
 Runs are named like gw_dreamer.py's with one suffix per experiment (``_hz``, ``_sgz``, ``_zinit``,
-``_attrz``, ``_noslope``, ``_ol10``), so they never mix with the paper's runs.
+``_attrz``, ``_noslope``, ``_ol10``, ``_rec0.5``), so they never mix with the paper's runs.
 """
 
 from __future__ import annotations
