@@ -71,6 +71,11 @@ class Args:
     expert_fraction: float | None = None
     """share of expert samples in the RoboDesk data (default k/(k+1) for k tasks: the paper's 1M random +
     1M expert for one task, and 500k per task + 500k random for six)"""
+    wander_fraction: float = 0.0
+    """share of RoboDesk samples from the wanderer (envs/robodesk_experts.py Wanderer: random way-points,
+    many a few cm above the desk's handles, objects and green button, random gripper), taken before the
+    expert / random split; the experts' paths and a random policy near the start pose leave most of the
+    states an agent visits unseen (docs/pretrain_vae_gw.md)"""
     expert_noise: float = 0.1
     """std of the Gaussian noise added to the scripted experts' actions (more varied data)"""
     seed: int = 1
@@ -806,9 +811,13 @@ def robodesk_plan(args: Args, need: int, learned: tuple[str, ...] = ()) -> list[
                 f"dreamer_baseline.py policy with --expert-checkpoint, or --expert-fraction 0 for random "
                 f"data only)"
             )
-    per_task = int(round(need * frac)) // len(tasks)
+    if not 0.0 <= args.wander_fraction <= 1.0:
+        raise UsageError(f"--wander-fraction must be in [0, 1], got {args.wander_fraction}")
+    wander = int(round(need * args.wander_fraction))
+    per_task = int(round((need - wander) * frac)) // len(tasks)
     blocks = [("expert", t, per_task) for t in tasks if per_task > 0]
-    return blocks + [("random", tasks[0], need - per_task * len(blocks))]
+    blocks += [("wander", tasks[0], wander)] if wander else []
+    return blocks + [("random", tasks[0], need - wander - per_task * (len(blocks) - bool(wander)))]
 
 
 class ExpertProgram:
@@ -916,7 +925,7 @@ def robodesk_episode(job: tuple[str, str, int, int]) -> dict:
     """One episode of the scripted expert, the exported policy or the random policy of ``task``, cut at
     ``n`` samples: the observations (image, attributes) seen before each action."""
     from envs.robodesk import RoboDeskEnv
-    from envs.robodesk_experts import EXPERTS
+    from envs.robodesk_experts import EXPERTS, Wanderer
 
     source, task, n, seed = job
     if task not in WORKER["envs"]:
@@ -929,6 +938,8 @@ def robodesk_episode(job: tuple[str, str, int, int]) -> dict:
         policy = (
             learned.start(noise=noise, seed=seed) if learned else EXPERTS[task](env, noise=noise, seed=seed)
         )
+    elif source == "wander":
+        policy = Wanderer(env, seed=seed)
     images, attrs, done = [], [], False
     while len(attrs) < n and not done:
         images.append(obs["image"])

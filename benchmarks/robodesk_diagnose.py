@@ -26,6 +26,13 @@
    closed against keeping still.
    --press-tolerance adds the scripted expert aimed off the button's centre at five gripper settings
    (what pressing takes).
+5. What the GW carries on the agent's own states (--gw-coverage N): along N of the agent's episodes
+   (fixed starts) and N of the scripted push_green expert's (action noise 0.1, like the GW's data), the
+   end effector and the green light read from z through d_attr and the attribute VAE's decoder, against
+   the simulator's: the end effector's mean error in cm (within 15 cm of the button in brackets) and the
+   correlation of the light joint's read-out with the real one, for the fused z, z from vision alone and
+   z from the attributes alone. --gw-dirs adds other pretrain_vae_gw.py outputs (their robodesk/vae.pt
+   and gw.pt) read on the same observations; the agent acts on its own GW.
 
     python benchmarks/robodesk_diagnose.py \\
         checkpoints/robodesk/agents/gw_dreamer_gw_robodesk_push_green_s1.pt
@@ -56,6 +63,10 @@ class Args:
     """states of part 3 (0 skips it: it needs MuJoCo's renderer and the agent's VAEs + GW)"""
     press_episodes: int = 4
     """episodes of part 4 (fixed starts, seeds 700, 701, ...; 0 skips it)"""
+    gw_coverage: int = 0
+    """episodes of part 5 (0 skips it)"""
+    gw_dirs: tuple[str, ...] = ()
+    """part 5: checkpoint directories of other VAEs + GWs to read the same observations with"""
     press_tolerance: bool = False
     """also print what pressing takes: the scripted expert aimed off the button's centre, at each gripper
     setting (part 4's reference; the same for every checkpoint)"""
@@ -307,6 +318,55 @@ def hover_probe(env, agent, encoder, h, z, plans, steps: int = 10) -> tuple:
     return (np.array(true), np.array(dreamt), *first.values())
 
 
+@torch.no_grad()
+def gw_coverage(path: str, episodes: int, gw_dirs: tuple[str, ...]) -> dict:
+    """Part 5: {(GW, policy, z's modality): (end-effector error cm, the same within 15 cm of the button,
+    correlation of the light joint's read-out with the real one)}."""
+    from envs.robodesk import N_ROBOT_JOINTS as N
+    from envs.robodesk_experts import EXPERTS
+
+    agent, encoder, env = agent_in_simulator(path, task="push_green")
+    ck = torch.load(path, weights_only=False, map_location="cpu")
+    encoders = {"the agent's GW": encoder}
+    for folder in gw_dirs:
+        a = G.Args(**{k: v for k, v in ck["args"].items() if k in G.Args.__dataclass_fields__}).resolve()
+        a.checkpoint_dir = folder
+        encoders[folder] = G.load_frozen(a, torch.device("cpu"))[0]
+    joint = env.model.joint("green_light").qposadr[0]
+    light = 2 * N + 3 + joint - N  # the attributes: qpos[:N], qvel[:N], end effector, qpos[N:], qvel[N:]
+    modes = {"fused": (0.5, 0.5), "vision": (1.0, 0.0), "attributes": (0.0, 1.0)}
+    out = {}
+    for policy in ("agent", "expert"):
+        read = {(g, m): [] for g in encoders for m in modes}
+        truth, near = [], []
+        for ep in range(episodes):
+            obs, _ = env.reset(seed=700 + ep)
+            expert = EXPERTS["push_green"](env, noise=0.1, seed=ep) if policy == "expert" else None
+            h, done = torch.zeros(1, agent.wm.hidden), False
+            while not done:
+                batch = {k: v[None] for k, v in obs.items()}
+                for g, enc in encoders.items():
+                    for m, (alpha_v, alpha_attr) in modes.items():
+                        attr = enc.vae_attr.decoder(enc.gw.d["attr"](enc(batch, alpha_v, alpha_attr)))
+                        read[g, m].append((attr * enc.attr_std + enc.attr_mean)[0].numpy())
+                truth.append(obs["attr"])
+                near.append(np.linalg.norm(obs["attr"][18:21] - env._xpos("green_button")) < 0.15)
+                z = encoder(batch)
+                a = agent.actor.act(agent.features(h, z))
+                if expert is not None:
+                    a = torch.as_tensor(expert.act(env))[None]
+                obs, _, term, trunc, _ = env.step(a[0].numpy())
+                h, done = agent.wm.step(h, z, a), term or trunc
+        truth, near = np.array(truth), np.array(near)
+        for (g, m), rows in read.items():
+            rows = np.array(rows)
+            err = 100 * np.linalg.norm(rows[:, 18:21] - truth[:, 18:21], axis=1)
+            corr = np.corrcoef(rows[:, light], truth[:, light])[0, 1]
+            out[g, policy, m] = (err.mean(), err[near].mean() if near.any() else np.nan, corr)
+    env.close()
+    return out
+
+
 def decoded_end_effector(encoder, z: torch.Tensor) -> np.ndarray:
     """The end-effector position (m) that z broadcasts to the attributes: d_attr, then the attribute VAE's
     decoder, un-normalised (the end effector is attributes 18-20 of RoboDeskEnv.attributes)."""
@@ -397,6 +457,14 @@ def main(args: Args) -> list[dict]:
                     f"{np.round(p['probe_moved_true'], 1)}, dreamt {np.round(p['probe_moved_dream'], 1)}"
                 )
             r |= p
+        if args.gw_coverage:
+            cov = gw_coverage(path, args.gw_coverage, args.gw_dirs)
+            for (g, policy, m), (err, err_near, corr) in cov.items():
+                print(
+                    f"  {g}, {policy} episodes, z from {m}: end effector {err:.1f} cm ({err_near:.1f} within "
+                    f"15 cm of the button), light read-out correlation {corr:.3f}"
+                )
+            r["gw_coverage"] = cov
         out.append(r)
     if args.press_tolerance:
         press_tolerance()

@@ -161,6 +161,59 @@ PLANS = {
 }
 
 
+# The box the end-effector site wanders in (m): the desk's width, from the robot's side to the shelf, from
+# just above the desk top to 60 cm above it; the agents' own episodes spend their steps there.
+WANDER_LOW, WANDER_HIGH = np.array([-0.6, 0.3, DESK_Z + 0.02]), np.array([0.6, 0.9, DESK_Z + 0.6])
+LANDMARKS = ("green_button", "drawer_handle", "slide_handle", "upright_block", "flat_block", "ball")
+
+
+class Wanderer:
+    """Exploration data for the GW (pretrain_vae_gw.py --wander-fraction): the hand goes to random
+    way-points, each with a random gripper action, and moves on when it is there (2 cm) or after 40
+    steps. A share ``near`` of the way-points lies a few cm above a random landmark of the desk (the
+    green button, the handles, the objects; not the red and blue buttons, whose tasks stay zero-shot), so
+    the data hold the hand near and on things in every pose, not only along the experts' paths; the
+    wrist drifts. ``noise`` as for the experts."""
+
+    def __init__(self, env: gym.Env, noise: float = 0.3, seed: int | None = None, near: float = 0.4):
+        lo, hi = env.unwrapped.joint_bounds[6]
+        self.wrist_hold = -(lo + hi) / (hi - lo)
+        self.noise, self.near = float(noise), near
+        self.rng = np.random.default_rng(seed)
+        self.target, self.steps_left, self.grip, self.wrist = None, 0, 0.0, self.wrist_hold
+
+    def reset(self) -> None:
+        self.target = None
+
+    def _landmark(self, env) -> np.ndarray:
+        # the green button a third of the time: the paper's RoboDesk task, pressed from every side
+        name = "green_button" if self.rng.random() < 1 / 3 else LANDMARKS[1 + self.rng.integers(5)]
+        if name == "drawer_handle":
+            return env.data.geom_xpos[env.model.geom(name).id]
+        if name == "slide_handle":
+            return env.data.site_xpos[env.model.site(name).id]
+        return env._xpos(name)
+
+    def act(self, env: gym.Env) -> np.ndarray:
+        robodesk = env.unwrapped
+        ee = robodesk.data.site_xpos[robodesk._ee_site]
+        if self.target is None or self.steps_left == 0 or np.linalg.norm(self.target - ee) < 0.02:
+            if self.rng.random() < self.near:
+                offset = np.r_[self.rng.uniform(-0.05, 0.05, 2), self.rng.uniform(0.03, 0.15)]
+                self.target = self._landmark(robodesk) + offset
+            else:
+                self.target = self.rng.uniform(WANDER_LOW, WANDER_HIGH)
+            self.grip = float(self.rng.choice([-1.0, 1.0, self.rng.uniform(-1, 1)]))
+            self.wrist = float(np.clip(self.wrist_hold + self.rng.normal(0, 0.3), -1, 1))
+            self.steps_left = 40
+        self.steps_left -= 1
+        action = np.zeros(5)
+        action[:3] = np.clip((self.target - ee) / STEP, -1.0, 1.0)
+        action[3], action[4] = self.wrist, self.grip
+        action += self.rng.normal(0.0, self.noise, 5)
+        return np.clip(action, -1.0, 1.0).astype(np.float32)
+
+
 def _factory(task: str) -> Callable[..., WaypointExpert]:
     def make(env: gym.Env, noise: float = 0.0, seed: int | None = None) -> WaypointExpert:
         if env.unwrapped.task != task:

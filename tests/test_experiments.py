@@ -174,3 +174,29 @@ def test_recent_fraction_draws_that_share_of_sequences_from_the_newest_steps():
     assert (z[:32] >= 270).all() and (np.diff(z, axis=1) == 1).all()
     assert (z[32:, 0] < 270).mean() > 0.5  # the rest spread over the whole stream
     X.RecentReplay.fraction, X.RecentReplay.window = 0.0, 5000
+
+
+def test_residual_world_model_predicts_a_change_of_z_and_acts_on_the_gru_state():
+    """--wm-residual: with the z head's last layer at zero the world model predicts z_{t+1} = z_t, whatever
+    h; its loss and dreams run through gw_dreamer.py's own functions, and the actor reads the GRU's part of
+    the state only."""
+    torch.manual_seed(0)
+    agent = X.experiment_agent(X.Args(env="robodesk", cpu_preset=True, wm_residual=True))(
+        "robodesk", 76, "twohot", cpu_preset=True
+    )
+    hidden = agent.wm.gru.hidden_size
+    assert agent.wm.hidden == hidden + 76
+    batch = robodesk_batch()
+    torch.nn.init.zeros_(agent.wm.z_head[-2].weight)
+    torch.nn.init.zeros_(agent.wm.z_head[-2].bias)
+    state = agent.wm.step(torch.randn(3, agent.wm.hidden), batch["z"][:, 0], batch["a"][:, 0])
+    torch.testing.assert_close(agent.wm.heads(state)[0], batch["z"][:, 0].clamp(-0.999, 0.999))
+    args = X.Args(env="robodesk", cpu_preset=True)
+    loss, terms, h_entry, _ = G.world_model_loss(agent.wm, agent.reward_dec, batch, args)
+    valid = 1 - batch["last"][:, :-1]
+    expected = (((batch["z"][:, :-1].clamp(-0.999, 0.999) - batch["z"][:, 1:]) ** 2).sum(-1) * valid).sum()
+    torch.testing.assert_close(terms["loss_z"], expected / valid.sum())
+    assert h_entry.shape == (3, 13, hidden + 76)
+    dream = G.imagine(agent, h_entry[:, -1], batch["z"][:, -1], 4)
+    assert dream.feats.shape == (5, 3, hidden)  # the actor and critic read h, not z_t
+    torch.testing.assert_close(dream.feats[0], h_entry[:, -1, :hidden])

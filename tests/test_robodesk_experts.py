@@ -10,7 +10,7 @@ from conftest import run_pretrain
 
 import pretrain_vae_gw as P
 from envs.robodesk import RoboDeskEnv
-from envs.robodesk_experts import EXPERTS
+from envs.robodesk_experts import EXPERTS, LANDMARKS, WANDER_HIGH, WANDER_LOW, Wanderer
 
 
 @pytest.mark.parametrize("task", sorted(EXPERTS))
@@ -48,6 +48,52 @@ def test_collection_plan_follows_the_paper_proportions():
         P.robodesk_plan(P.Args(env="robodesk", tasks=("lift_ball",)), 10)
     with pytest.raises(ValueError, match="unknown RoboDesk task 'fly'"):
         P.robodesk_plan(P.Args(env="robodesk", tasks=("fly",)), 10)
+
+
+def test_wander_share_comes_before_the_expert_random_split():
+    args = P.Args(env="robodesk", tasks=("push_green", "open_slide"), wander_fraction=0.3).resolve()
+    assert P.robodesk_plan(args, 1000) == [
+        ("expert", "push_green", 233),
+        ("expert", "open_slide", 233),
+        ("wander", "push_green", 300),
+        ("random", "push_green", 234),
+    ]
+    with pytest.raises(ValueError, match="--wander-fraction must be in"):
+        P.robodesk_plan(P.Args(env="robodesk", wander_fraction=1.5).resolve(), 10)
+
+
+def test_wanderer_goes_to_its_way_points_near_landmarks_and_in_the_box():
+    """Without noise the hand reaches each way-point (a few cm above a landmark, or anywhere in the box),
+    then draws the next; the gripper action changes between way-points; seeded runs repeat."""
+    env = RoboDeskEnv(task="push_green", render_images=False)
+    env.reset(seed=0)
+    for near in (1.0, 0.0):
+        w = Wanderer(env, noise=0.0, seed=1, near=near)
+        targets, grips, start, reached, closer = [], [], None, [], []
+        for _ in range(200):
+            ee = env.data.site_xpos[env._ee_site].copy()
+            a = w.act(env)
+            if not targets or not np.array_equal(w.target, targets[-1]):
+                if targets:  # how close the hand came to the way-point it leaves
+                    reached.append(np.linalg.norm(targets[-1] - ee) < 0.03)
+                    closer.append(np.linalg.norm(targets[-1] - ee) < np.linalg.norm(targets[-1] - start))
+                targets.append(w.target.copy())
+                grips.append(a[4])
+                start = ee
+            env.step(a)
+        # Some way-points lie beyond the arm's reach or inside an object; the rest are reached.
+        assert len(targets) >= 4 and len(set(grips)) >= 2
+        assert any(reached) and np.mean(closer) >= 0.75, (reached, closer)
+        for t in targets:
+            if near:  # above one of the landmarks, within 5 cm across
+                marks = [w._landmark(env) for _ in range(50)]
+                assert min(np.abs(t[:2] - m[:2]).max() for m in marks) <= 0.05 + 1e-6
+            else:
+                assert np.all(t >= WANDER_LOW) and np.all(t <= WANDER_HIGH)
+    assert len(LANDMARKS) == 6 and "red_button" not in LANDMARKS
+    ee = env.data.site_xpos[env._ee_site]
+    first, second = Wanderer(env, seed=4), Wanderer(env, seed=4)
+    assert np.array_equal(first.act(env), second.act(env)) and np.linalg.norm(first.target - ee) > 0
 
 
 def test_collector_mixes_sources_and_labels_every_sample(tmp_path):

@@ -8,9 +8,10 @@ checkpoints and the logs are gw_dreamer.py's.
     python benchmarks/experiments/gw_dreamer_experiments.py --z-source attributes   # the control
     python benchmarks/experiments/gw_dreamer_experiments.py --ac-input hz --eval-only --checkpoint PATH
     python benchmarks/experiments/gw_dreamer_experiments.py --env robodesk --cpu-preset --wm-open-loop 10
+    python benchmarks/experiments/gw_dreamer_experiments.py --env robodesk --cpu-preset --wm-residual
 
 Runs are named like gw_dreamer.py's with one suffix per experiment (``_hz``, ``_sgz``, ``_zinit``,
-``_attrz``, ``_noslope``, ``_ol10``, ``_rec0.5``), so they never mix with the paper's runs.
+``_attrz``, ``_noslope``, ``_ol10``, ``_rec0.5``, ``_res``), so they never mix with the paper's runs.
 """
 
 from __future__ import annotations
@@ -58,6 +59,10 @@ class Args(G.Args):
     often than the older ones it has replayed hundreds of times"""
     recent_window: int = 5000
     """stored steps per stream that count as recent for --recent-fraction"""
+    wm_residual: bool = False
+    """the z head predicts a change: z_{t+1} = tanh(atanh(z_t) + head(h_{t+1})) instead of the paper's
+    tanh(head(h_{t+1})), so a world model that knows nothing of an action predicts that nothing moves
+    (same parameters)"""
     z_source: Literal["gw", "attributes"] = "gw"
     """gw: the paper's z_t. attributes (Simple Shapes only): z_t is the true attribute vector (its first
     10 entries, clipped to [-1, 1]) instead of the GW's, which tests the world model and actor-critic
@@ -73,6 +78,7 @@ def suffix(args: Args) -> str:
         + ("" if args.value_slope else "_noslope")
         + (f"_ol{args.wm_open_loop}" if args.wm_open_loop else "")
         + (f"_rec{args.recent_fraction:g}" if args.recent_fraction else "")
+        + ("_res" if args.wm_residual else "")
     )
 
 
@@ -149,6 +155,20 @@ def experiment_agent(args: Args) -> type[G.Agent]:
             feat = torch.cat([h_next, z_next.detach()], -1)
             return z_next, self.reward_head(feat), self.done_head(feat).squeeze(-1)
 
+    class ResidualWorldModel(G.WorldModel):
+        """--wm-residual. Its state is [h, z_t]: step keeps the z_t it read beside the GRU's h_{t+1}, so
+        heads(state) adds the change to it; the actor and critic read the GRU's part only."""
+
+        def step(self, state, z, a):
+            h = self.gru(self.inp(torch.cat([z, a], -1)), state[..., : self.gru.hidden_size])
+            return torch.cat([h, z], -1)
+
+        def heads(self, state):
+            h, z_t = state[..., : self.gru.hidden_size], state[..., self.gru.hidden_size :]
+            z_next = torch.tanh(self.z_head[:-1](h) + torch.atanh(z_t.clamp(-0.999, 0.999)))
+            feat = torch.cat([h, z_next], -1)
+            return z_next, self.reward_head(feat), self.done_head(feat).squeeze(-1)
+
     class ConstantInputCritic(G.Critic):
         def forward(self, h):
             return self.net(h.detach())
@@ -158,6 +178,9 @@ def experiment_agent(args: Args) -> type[G.Agent]:
             super().__init__(env, z_dim, reward_loss, return_norm_decay, cpu_preset)
             if args.heads_read_sg_z:
                 self.wm.__class__ = SgZWorldModel  # same parameters, other forward
+            if args.wm_residual:
+                self.wm.__class__ = ResidualWorldModel
+                self.wm.hidden = self.wm.gru.hidden_size + z_dim
             if not args.value_slope:
                 self.critic.__class__ = ConstantInputCritic
             if args.zero_init:  # DreamerV3: reward and value predictions start at 0
@@ -171,6 +194,7 @@ def experiment_agent(args: Args) -> type[G.Agent]:
             return sizes["gru_hidden"] + (z_dim if args.ac_input == "hz" else 0)
 
         def features(self, h, z):
+            h = h[..., : self.wm.gru.hidden_size]  # --wm-residual's state carries z_t after h
             return torch.cat([h, z], -1) if args.ac_input == "hz" else h
 
     return ExperimentAgent
@@ -188,6 +212,8 @@ class AttributeEncoder(G.FrozenEncoder):
 
 
 def main(args: Args) -> dict:
+    if args.wm_residual and args.heads_read_sg_z:
+        raise G.UsageError("--wm-residual and --heads-read-sg-z are separate experiments; give one")
     if args.z_source == "attributes" and args.env != "simple_shapes":
         raise G.UsageError(
             "--z-source attributes is a Simple Shapes control (RoboDesk attributes are unbounded)"

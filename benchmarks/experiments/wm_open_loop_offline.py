@@ -12,6 +12,7 @@ is on (the reward of a press), the dreamt against the real reward summed over th
     python benchmarks/experiments/wm_open_loop_offline.py RUN.pt --updates 600 --k 0 10
     python benchmarks/experiments/wm_open_loop_offline.py RUN.pt --heldout OTHER_RUN.pt
     python benchmarks/experiments/wm_open_loop_offline.py RUN.pt --heldout OTHER_RUN.pt --by-age
+    python benchmarks/experiments/wm_open_loop_offline.py RUN.pt --heldout LATER.pt --fresh --wm-residual
 
 --by-age trains nothing: each of the two checkpoints' world models reads each run's whole replay (first
 stream) one step ahead, the real z given at every step as when acting, and prints its z error and
@@ -57,6 +58,8 @@ class Args:
     """--recent-fraction of the training batches"""
     recent_window: int = 5000
     """--recent-window"""
+    wm_residual: bool = False
+    """--wm-residual (the z head predicts a change of z; with --fresh)"""
     fresh: bool = False
     """start from a freshly initialised world model instead of the checkpoint's"""
     windows: int = 512
@@ -223,16 +226,20 @@ def main(a: Args) -> None:
     where = f"its newest {a.newest:,} entries" if not a.heldout else a.heldout
     where += f" (its newest {a.heldout_newest:,} entries)" if a.heldout and a.heldout_newest else ""
     print(f"train replay {a.train}; held out: {len(windows['z'])} windows of {where} ({pressed} pressed)")
+    if a.wm_residual and not a.fresh:
+        raise SystemExit("error: --wm-residual trains a fresh world model; give --fresh")
     for k in a.k:
         torch.manual_seed(a.seed)
-        agent = G.Agent("robodesk", encoder.z_dim, run_args.reward_loss, run_args.return_norm_decay, True)
-        if not a.fresh:
-            agent.load_state_dict(ck["agent"])
         args = X.Args(
             **vars(run_args)
-            | {"wm_open_loop": k, "wm_open_loop_stride": a.stride}
+            | {"wm_open_loop": k, "wm_open_loop_stride": a.stride, "wm_residual": a.wm_residual}
             | {"recent_fraction": a.recent_fraction, "recent_window": a.recent_window}
         )
+        agent = X.experiment_agent(args)(
+            "robodesk", encoder.z_dim, run_args.reward_loss, run_args.return_norm_decay, True
+        )
+        if not a.fresh:
+            agent.load_state_dict(ck["agent"])
         if k == a.k[0]:
             print("before:", fmt(evaluate(agent, encoder, windows, args.reward_offset)))
         s = train(agent, replay_of(ck, args, a.seed, leave_out), args, a.updates)
