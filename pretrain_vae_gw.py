@@ -815,9 +815,9 @@ def robodesk_plan(args: Args, need: int, learned: tuple[str, ...] = ()) -> list[
         raise UsageError(f"--wander-fraction must be in [0, 1], got {args.wander_fraction}")
     wander = int(round(need * args.wander_fraction))
     per_task = int(round((need - wander) * frac)) // len(tasks)
-    blocks = [("expert", t, per_task) for t in tasks if per_task > 0]
-    blocks += [("wander", tasks[0], wander)] if wander else []
-    return blocks + [("random", tasks[0], need - wander - per_task * (len(blocks) - bool(wander)))]
+    experts = [("expert", t, per_task) for t in tasks if per_task > 0]
+    wanderer = [("wander", tasks[0], wander)] if wander else []
+    return experts + wanderer + [("random", tasks[0], need - wander - per_task * len(experts))]
 
 
 class ExpertProgram:
@@ -922,8 +922,8 @@ def episode_seed(seed: int, block: int, episode: int) -> int:
 
 
 def robodesk_episode(job: tuple[str, str, int, int]) -> dict:
-    """One episode of the scripted expert, the exported policy or the random policy of ``task``, cut at
-    ``n`` samples: the observations (image, attributes) seen before each action."""
+    """One episode of the scripted expert, the exported policy, the wanderer or the random policy of
+    ``task``, cut at ``n`` samples: the observations (image, attributes) seen before each action."""
     from envs.robodesk import RoboDeskEnv
     from envs.robodesk_experts import EXPERTS, Wanderer
 

@@ -352,8 +352,9 @@ def gw_coverage(path: str, episodes: int, gw_dirs: tuple[str, ...]) -> dict:
                 truth.append(obs["attr"])
                 near.append(np.linalg.norm(obs["attr"][18:21] - env._xpos("green_button")) < 0.15)
                 z = encoder(batch)
-                a = agent.actor.act(agent.features(h, z))
-                if expert is not None:
+                if expert is None:
+                    a = agent.actor.act(agent.features(h, z))
+                else:
                     a = torch.as_tensor(expert.act(env))[None]
                 obs, _, term, trunc, _ = env.step(a[0].numpy())
                 h, done = agent.wm.step(h, z, a), term or trunc

@@ -167,6 +167,15 @@ WANDER_LOW, WANDER_HIGH = np.array([-0.6, 0.3, DESK_Z + 0.02]), np.array([0.6, 0
 LANDMARKS = ("green_button", "drawer_handle", "slide_handle", "upright_block", "flat_block", "ball")
 
 
+def landmark_positions(env) -> dict[str, np.ndarray]:
+    """Where each of ``LANDMARKS`` is now (m)."""
+    robodesk = env.unwrapped
+    out = {name: robodesk._xpos(name) for name in ("green_button", "upright_block", "flat_block", "ball")}
+    out["drawer_handle"] = robodesk.data.geom_xpos[robodesk.model.geom("drawer_handle").id]
+    out["slide_handle"] = robodesk.data.site_xpos[robodesk.model.site("slide_handle").id]
+    return out
+
+
 class Wanderer:
     """Exploration data for the GW (pretrain_vae_gw.py --wander-fraction): the hand goes to random
     way-points, each with a random gripper action, and moves on when it is there (2 cm) or after 40
@@ -188,11 +197,7 @@ class Wanderer:
     def _landmark(self, env) -> np.ndarray:
         # the green button a third of the time: the paper's RoboDesk task, pressed from every side
         name = "green_button" if self.rng.random() < 1 / 3 else LANDMARKS[1 + self.rng.integers(5)]
-        if name == "drawer_handle":
-            return env.data.geom_xpos[env.model.geom(name).id]
-        if name == "slide_handle":
-            return env.data.site_xpos[env.model.site(name).id]
-        return env._xpos(name)
+        return landmark_positions(env)[name]
 
     def act(self, env: gym.Env) -> np.ndarray:
         robodesk = env.unwrapped

@@ -205,6 +205,8 @@ def end_effector(encoder, z: torch.Tensor) -> torch.Tensor:
 
 
 def main(a: Args) -> None:
+    if a.wm_residual and not a.fresh:
+        raise SystemExit("error: --wm-residual trains a fresh world model; give --fresh")
     torch.set_num_threads(a.torch_threads)
     ck, run_args = load(a.train)
     held = load(a.heldout)[0] if a.heldout else ck
@@ -226,8 +228,6 @@ def main(a: Args) -> None:
     where = f"its newest {a.newest:,} entries" if not a.heldout else a.heldout
     where += f" (its newest {a.heldout_newest:,} entries)" if a.heldout and a.heldout_newest else ""
     print(f"train replay {a.train}; held out: {len(windows['z'])} windows of {where} ({pressed} pressed)")
-    if a.wm_residual and not a.fresh:
-        raise SystemExit("error: --wm-residual trains a fresh world model; give --fresh")
     for k in a.k:
         torch.manual_seed(a.seed)
         args = X.Args(
