@@ -73,7 +73,7 @@ class Args:
     1M expert for one task, and 500k per task + 500k random for six)"""
     wander_fraction: float = 0.0
     """share of RoboDesk samples from the wanderer (envs/robodesk_experts.py Wanderer: random way-points,
-    many a few cm above the desk's handles, objects and green button, random gripper), taken before the
+    many at the desk's handles, objects and green button, random gripper and wrist), taken before the
     expert / random split; the experts' paths and a random policy near the start pose leave most of the
     states an agent visits unseen (docs/pretrain_vae_gw.md)"""
     expert_noise: float = 0.1

@@ -32,7 +32,19 @@
    the simulator's: the end effector's mean error in cm (within 15 cm of the button in brackets) and the
    correlation of the light joint's read-out with the real one, for the fused z, z from vision alone and
    z from the attributes alone. --gw-dirs adds other pretrain_vae_gw.py outputs (their robodesk/vae.pt
-   and gw.pt) read on the same observations; the agent acts on its own GW.
+   and gw.pt) read on the same observations; the agent acts on its own GW. --coverage-data adds how far
+   the agent's arm poses lie from a pretrain_vae_gw.py dataset (its <data_dir>/robodesk/ shards): the
+   median distance from each of the agent's robot joint configurations (the 9 qpos, in units of the
+   data's std) to the nearest one of each data source (expert, random, wanderer), against the same for
+   the data's held-out episodes of that source, and each GW's end-effector read-out on those held-out
+   episodes, per source.
+
+6. Whether reward carries from some agents' states to another's (--reward-transfer N, two checkpoints or
+   more on the same GW): N episodes of each agent (fixed starts); a reward head (2 x 256, 3,000 Adam
+   steps) fit on all agents but one, reading the next state's z (fused, vision only, attributes only) or
+   the true attributes (standardised), and its mean |r_hat - r| per agent step on the left-out agent's
+   steps, averaged over the agents left out. If the true attributes do no better than z, a head fit on a
+   few policies' states extrapolates poorly whatever it reads, and the test does not single out z.
 
     python benchmarks/robodesk_diagnose.py \\
         checkpoints/robodesk/agents/gw_dreamer_gw_robodesk_push_green_s1.pt
@@ -67,6 +79,11 @@ class Args:
     """episodes of part 5 (0 skips it)"""
     gw_dirs: tuple[str, ...] = ()
     """part 5: checkpoint directories of other VAEs + GWs to read the same observations with"""
+    coverage_data: str = ""
+    """part 5: a pretrain_vae_gw.py --data-dir whose robot joint configurations are compared with the
+    agent's"""
+    reward_transfer: int = 0
+    """episodes per checkpoint of part 6 (0 skips it)"""
     press_tolerance: bool = False
     """also print what pressing takes: the scripted expert aimed off the button's centre, at each gripper
     setting (part 4's reference; the same for every checkpoint)"""
@@ -335,7 +352,7 @@ def gw_coverage(path: str, episodes: int, gw_dirs: tuple[str, ...]) -> dict:
     joint = env.model.joint("green_light").qposadr[0]
     light = 2 * N + 3 + joint - N  # the attributes: qpos[:N], qvel[:N], end effector, qpos[N:], qvel[N:]
     modes = {"fused": (0.5, 0.5), "vision": (1.0, 0.0), "attributes": (0.0, 1.0)}
-    out = {}
+    out, seen = {}, {}
     for policy in ("agent", "expert"):
         read = {(g, m): [] for g in encoders for m in modes}
         truth, near = [], []
@@ -359,12 +376,144 @@ def gw_coverage(path: str, episodes: int, gw_dirs: tuple[str, ...]) -> dict:
                 obs, _, term, trunc, _ = env.step(a[0].numpy())
                 h, done = agent.wm.step(h, z, a), term or trunc
         truth, near = np.array(truth), np.array(near)
+        seen[policy] = truth
         for (g, m), rows in read.items():
             rows = np.array(rows)
             err = 100 * np.linalg.norm(rows[:, 18:21] - truth[:, 18:21], axis=1)
             corr = np.corrcoef(rows[:, light], truth[:, light])[0, 1]
             out[g, policy, m] = (err.mean(), err[near].mean() if near.any() else np.nan, corr)
     env.close()
+    return out, seen["agent"], encoders
+
+
+@torch.no_grad()
+def held_out_by_source(encoders: dict, data_dir: str, held_out: int = 6_000) -> dict:
+    """Part 5, --coverage-data: {(GW, data source, z's modality): mean end-effector error in cm} on the
+    data's held-out front (whole episodes), read as for the agents' episodes."""
+    data = np.load(sorted((Path(data_dir) / "robodesk").glob("shard_*.npz"))[0])
+    image, attr, source = data["image"][:held_out], data["attr"][:held_out], data["source"][:held_out]
+    modes = {"fused": (0.5, 0.5), "vision": (1.0, 0.0), "attributes": (0.0, 1.0)}
+    out = {}
+    for g, enc in encoders.items():
+        for src in np.unique(source):
+            keep = np.nonzero(source == src)[0]
+            for m, alphas in modes.items():
+                read = []
+                for i in range(0, len(keep), 500):
+                    rows = keep[i : i + 500]
+                    z = enc({"image": image[rows], "attr": attr[rows]}, *alphas)
+                    read.append(
+                        (enc.vae_attr.decoder(enc.gw.d["attr"](z)) * enc.attr_std + enc.attr_mean).numpy()
+                    )
+                err = np.linalg.norm(np.concatenate(read)[:, 18:21] - attr[keep, 18:21], axis=1)
+                out[g, str(src), m] = 100 * float(err.mean())
+    return out
+
+
+# Arm poses the scripted experts' data lack and learning agents take (docs/pretrain_vae_gw.md): the wrist
+# (joint 7, qpos 6) near either end of its range, and joint 6 (qpos 5) bent, the hand pressed on the desk.
+POSES = {
+    "wrist < -2.4 rad": lambda q: q[:, 6] < -2.4,
+    "wrist > 1.5 rad": lambda q: q[:, 6] > 1.5,
+    "joint 6 < 1 rad": lambda q: q[:, 5] < 1.0,
+}
+
+
+def pose_shares(agent_attr: np.ndarray, data_dir: str) -> dict:
+    """Part 5, --coverage-data: {"agent" or data source: {pose: share of the steps in it}}."""
+    shards = sorted((Path(data_dir) / "robodesk").glob("shard_*.npz"))
+    qpos = np.concatenate([np.load(f)["attr"][:, :9] for f in shards])
+    source = np.concatenate([np.load(f)["source"] for f in shards])
+    groups = {"agent": agent_attr[:, :9]} | {str(s): qpos[source == s] for s in np.unique(source)}
+    return {g: {name: float(test(q).mean()) for name, test in POSES.items()} for g, q in groups.items()}
+
+
+def joint_coverage(agent_attr: np.ndarray, data_dir: str, held_out: int = 6_000, n: int = 60_000) -> dict:
+    """Part 5, --coverage-data: {data source: (median distance from the agent's robot joint configurations
+    to the nearest of that source's, the same from the source's held-out episodes)}, in units of the
+    data's std per joint. The held-out episodes are the data's first ``held_out`` samples (whole episodes:
+    pretrain_vae_gw.py's held-out front); the rest, at most ``n`` per source, are the pool. A neighbour
+    in the same episode would sit a step away, so only whole held-out episodes say how near a new episode
+    of the same kind comes."""
+    from envs.robodesk import N_ROBOT_JOINTS as N
+
+    shards = sorted((Path(data_dir) / "robodesk").glob("shard_*.npz"))
+    if not shards:
+        raise SystemExit(f"--coverage-data: no shard_*.npz in {Path(data_dir) / 'robodesk'}")
+    qpos = np.concatenate([np.load(f)["attr"][:, :N] for f in shards])
+    source = np.concatenate([np.load(f)["source"] for f in shards])
+    std, rng = qpos.std(0) + 1e-6, np.random.default_rng(0)
+
+    def nearest(points: np.ndarray, pool: np.ndarray) -> float:
+        pool = torch.as_tensor(pool / std, dtype=torch.float32)
+        return float(
+            torch.cdist(torch.as_tensor(points / std, dtype=torch.float32), pool).min(1).values.median()
+        )
+
+    agent = agent_attr[:, :N]
+    out = {}
+    for src in np.unique(source):
+        pool = qpos[held_out:][source[held_out:] == src]
+        pool = pool[rng.choice(len(pool), min(n, len(pool)), replace=False)]
+        held = qpos[:held_out][source[:held_out] == src]
+        out[str(src)] = (nearest(agent, pool), nearest(held, pool) if len(held) else float("nan"))
+    return out
+
+
+@torch.no_grad()
+def agent_episodes(path: str, episodes: int, seed: int) -> dict:
+    """Part 6: ``episodes`` of the checkpoint's agent from fixed starts: {"z": fused, vision, attributes
+    z of each observation, "attr": attributes, "next": index of the next observation, "r": reward}."""
+    agent, encoder, env = agent_in_simulator(path, task="push_green")
+    modes = {"fused": (0.5, 0.5), "vision": (1.0, 0.0), "attributes": (0.0, 1.0)}
+    z, attr, nxt, r = {m: [] for m in modes}, [], [], []
+    for ep in range(episodes):
+        obs, _ = env.reset(seed=seed + ep)
+        h, done = torch.zeros(1, agent.wm.hidden), False
+        while True:
+            batch = {k: v[None] for k, v in obs.items()}
+            for m, alphas in modes.items():
+                z[m].append(encoder(batch, *alphas)[0])
+            attr.append(obs["attr"])
+            if done:
+                break
+            a = agent.actor.act(agent.features(h, z["fused"][-1][None]))
+            obs, reward, term, trunc, _ = env.step(a[0].numpy())
+            nxt.append(len(attr))  # the observation this step leads to
+            r.append(reward)
+            h, done = agent.wm.step(h, z["fused"][-1][None], a), term or trunc
+    env.close()
+    return {"z": {m: torch.stack(v) for m, v in z.items()}, "attr": np.array(attr), "next": nxt, "r": r}
+
+
+def reward_transfer(paths: tuple[str, ...], episodes: int, steps: int = 3_000) -> dict:
+    """Part 6: {reader: (|r_hat - r| on the training agents' steps, on the left-out agent's)}."""
+    runs = [agent_episodes(p, episodes, seed=1000 * (i + 1)) for i, p in enumerate(paths)]
+    every = np.concatenate([run["attr"] for run in runs])
+    mean, std = every.mean(0), every.std(0) + 1e-3
+    readers = {m: [run["z"][m] for run in runs] for m in runs[0]["z"]}
+    readers["true attributes"] = [torch.as_tensor((run["attr"] - mean) / std).float() for run in runs]
+    out = {}
+    for name, xs in readers.items():
+        pairs = [(x[run["next"]], torch.as_tensor(run["r"]).float()) for x, run in zip(xs, runs, strict=True)]
+        errs = []
+        for left in range(len(runs)):
+            x = torch.cat([p[0] for i, p in enumerate(pairs) if i != left])
+            y = torch.cat([p[1] for i, p in enumerate(pairs) if i != left])
+            torch.manual_seed(0)
+            head = G.mlp(x.shape[1], 256, 1, 2)
+            opt = torch.optim.Adam(head.parameters(), 3e-4)
+            with torch.enable_grad():  # main() runs without gradients
+                for _ in range(steps):
+                    j = torch.randint(0, len(y), (512,))
+                    loss = (head(x[j]).squeeze(-1) - y[j]).pow(2).mean()
+                    opt.zero_grad()
+                    loss.backward()
+                    opt.step()
+            with torch.no_grad():
+                fit = (head(x).squeeze(-1) - y).abs().mean().item()
+                errs.append((fit, (head(pairs[left][0]).squeeze(-1) - pairs[left][1]).abs().mean().item()))
+        out[name] = tuple(np.mean(errs, axis=0))
     return out
 
 
@@ -459,14 +608,44 @@ def main(args: Args) -> list[dict]:
                 )
             r |= p
         if args.gw_coverage:
-            cov = gw_coverage(path, args.gw_coverage, args.gw_dirs)
+            cov, agent_attr, encoders = gw_coverage(path, args.gw_coverage, args.gw_dirs)
             for (g, policy, m), (err, err_near, corr) in cov.items():
                 print(
                     f"  {g}, {policy} episodes, z from {m}: end effector {err:.1f} cm ({err_near:.1f} within "
                     f"15 cm of the button), light read-out correlation {corr:.3f}"
                 )
             r["gw_coverage"] = cov
+            if args.coverage_data:
+                near = joint_coverage(agent_attr, args.coverage_data)
+                print(
+                    f"  robot joint configurations, median distance (data std units) to the nearest of each "
+                    f"source in {args.coverage_data}, the agent's (the source's held-out episodes'): "
+                    + ", ".join(f"{k} {a:.2f} ({h:.2f})" for k, (a, h) in near.items())
+                )
+                r["joint_coverage"] = near
+                shares = pose_shares(agent_attr, args.coverage_data)
+                for pose in POSES:
+                    print(
+                        f"  share of steps with {pose}: "
+                        + ", ".join(f"{g} {v[pose]:.3f}" for g, v in shares.items())
+                    )
+                r["pose_shares"] = shares
+                held = held_out_by_source(encoders, args.coverage_data)
+                for (g, src, m), err in held.items():
+                    print(
+                        f"  {g}, held-out {src} samples of {args.coverage_data}, z from {m}: end effector "
+                        f"{err:.1f} cm"
+                    )
+                r["held_out_by_source"] = held
         out.append(r)
+    if args.reward_transfer:
+        if len(args.checkpoints) < 2:
+            raise SystemExit("--reward-transfer needs two checkpoints or more (one is left out in turn)")
+        for name, (fit, left) in reward_transfer(args.checkpoints, args.reward_transfer).items():
+            print(
+                f"reward from the next {name}: |r_hat - r| {fit:.3f} on the agents fit, {left:.3f} on the "
+                "one left out"
+            )
     if args.press_tolerance:
         press_tolerance()
     return out

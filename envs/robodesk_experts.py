@@ -26,6 +26,8 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 
+from envs.robodesk import WRIST_SCALE
+
 STEP = 0.04  # metres the end effector may move per agent step (0.01 per unit action x 4 repeats)
 CLOSED = -1.0  # gripper action (+1 opens the fingers)
 BIN_X = 0.40  # x of the bin's centre (its walls stand at 0.28 and 0.52)
@@ -162,34 +164,45 @@ PLANS = {
 
 
 # The box the end-effector site wanders in (m): the desk's width, from the robot's side to the shelf, from
-# just above the desk top to 60 cm above it; the agents' own episodes spend their steps there.
-WANDER_LOW, WANDER_HIGH = np.array([-0.6, 0.3, DESK_Z + 0.02]), np.array([0.6, 0.9, DESK_Z + 0.6])
+# 8 cm below the desk top (the hand pressed onto it, the arm's joints winding up as an agent's do when
+# it pushes down) to 60 cm above it; the agents' own episodes spend their steps there.
+WANDER_LOW, WANDER_HIGH = np.array([-0.6, 0.3, DESK_Z - 0.08]), np.array([0.6, 0.9, DESK_Z + 0.6])
+# Way-points near a landmark: within 5 cm across, from 5 cm below it (pressing on it) to 15 cm above.
+NEAR_LOW, NEAR_HIGH = np.array([-0.05, -0.05, -0.05]), np.array([0.05, 0.05, 0.15])
 LANDMARKS = ("green_button", "drawer_handle", "slide_handle", "upright_block", "flat_block", "ball")
 
 
 def landmark_positions(env) -> dict[str, np.ndarray]:
-    """Where each of ``LANDMARKS`` is now (m)."""
+    """Where each of ``LANDMARKS`` is now (m; copies, not views of the simulator's state)."""
     robodesk = env.unwrapped
     out = {name: robodesk._xpos(name) for name in ("green_button", "upright_block", "flat_block", "ball")}
     out["drawer_handle"] = robodesk.data.geom_xpos[robodesk.model.geom("drawer_handle").id]
     out["slide_handle"] = robodesk.data.site_xpos[robodesk.model.site("slide_handle").id]
-    return out
+    return {name: np.array(where) for name, where in out.items()}
 
 
 class Wanderer:
     """Exploration data for the GW (pretrain_vae_gw.py --wander-fraction): the hand goes to random
     way-points, each with a random gripper action, and moves on when it is there (2 cm) or after 40
-    steps. A share ``near`` of the way-points lies a few cm above a random landmark of the desk (the
-    green button, the handles, the objects; not the red and blue buttons, whose tasks stay zero-shot), so
-    the data hold the hand near and on things in every pose, not only along the experts' paths; the
-    wrist drifts. ``noise`` as for the experts."""
+    steps. A share ``near`` of the way-points lies at a random landmark of the desk (the green button,
+    the handles, the objects; not the red and blue buttons, whose tasks stay zero-shot), from 5 cm below
+    its centre (pressing on it) to 15 cm above, so the data hold the hand near and on things in every
+    pose, not only along the experts' paths. The
+    wrist turns toward an angle drawn at each way-point, uniformly over its range with a sixth of the
+    draws at either end: a learning agent turns it to either end, which neither the experts' paths nor a
+    random policy reach
+    (docs/pretrain_vae_gw.md). ``noise`` as for the experts."""
 
     def __init__(self, env: gym.Env, noise: float = 0.3, seed: int | None = None, near: float = 0.4):
-        lo, hi = env.unwrapped.joint_bounds[6]
+        self.wrist_range = env.unwrapped.joint_bounds[6]
+        lo, hi = self.wrist_range
+        # the wrist action is a change of angle at each of the agent step's frames (envs/robodesk.py):
+        # this one holds it still, and each unit away from it turns it by wrist_rate radians per step
         self.wrist_hold = -(lo + hi) / (hi - lo)
+        self.wrist_rate = WRIST_SCALE * (hi - lo) / 2 * env.unwrapped.action_repeat
         self.noise, self.near = float(noise), near
         self.rng = np.random.default_rng(seed)
-        self.target, self.steps_left, self.grip, self.wrist = None, 0, 0.0, self.wrist_hold
+        self.target, self.steps_left, self.grip, self.wrist_target = None, 0, 0.0, None
 
     def reset(self) -> None:
         self.target = None
@@ -204,17 +217,20 @@ class Wanderer:
         ee = robodesk.data.site_xpos[robodesk._ee_site]
         if self.target is None or self.steps_left == 0 or np.linalg.norm(self.target - ee) < 0.02:
             if self.rng.random() < self.near:
-                offset = np.r_[self.rng.uniform(-0.05, 0.05, 2), self.rng.uniform(0.03, 0.15)]
-                self.target = self._landmark(robodesk) + offset
+                self.target = self._landmark(robodesk) + self.rng.uniform(NEAR_LOW, NEAR_HIGH)
             else:
                 self.target = self.rng.uniform(WANDER_LOW, WANDER_HIGH)
             self.grip = float(self.rng.choice([-1.0, 1.0, self.rng.uniform(-1, 1)]))
-            self.wrist = float(np.clip(self.wrist_hold + self.rng.normal(0, 0.3), -1, 1))
+            lo, hi = self.wrist_range  # uniform, with a sixth of the draws at either end
+            self.wrist_target = float(
+                np.clip(self.rng.uniform(lo - (hi - lo) / 4, hi + (hi - lo) / 4), lo, hi)
+            )
             self.steps_left = 40
         self.steps_left -= 1
         action = np.zeros(5)
         action[:3] = np.clip((self.target - ee) / STEP, -1.0, 1.0)
-        action[3], action[4] = self.wrist, self.grip
+        turn = 0.5 * (self.wrist_target - robodesk.data.qpos[6]) / self.wrist_rate  # half the way
+        action[3], action[4] = np.clip(self.wrist_hold + turn, -1.0, 1.0), self.grip
         action += self.rng.normal(0.0, self.noise, 5)
         return np.clip(action, -1.0, 1.0).astype(np.float32)
 

@@ -65,20 +65,25 @@ def test_wander_share_comes_before_the_expert_random_split():
 def test_wanderer_goes_to_its_way_points_near_landmarks_and_in_the_box():
     """Without noise the hand heads for each way-point (a few cm above a landmark where it is drawn, or
     anywhere in the box) and reaches those within the arm's reach, then draws the next; the gripper action
-    changes between way-points; seeded runs repeat."""
+    changes between way-points and the wrist turns toward an angle drawn over its whole range; seeded
+    runs repeat."""
     env = RoboDeskEnv(task="push_green", render_images=False)
     env.reset(seed=0)
     for near in (1.0, 0.0):
         w = Wanderer(env, noise=0.0, seed=1, near=near)
         targets, grips, start, reached, closer, marks = [], [], None, [], [], []
+        wrists, turned, wrist_start = [], [], None
         for _ in range(200):
-            ee = env.data.site_xpos[env._ee_site].copy()
+            ee, wrist = env.data.site_xpos[env._ee_site].copy(), env.data.qpos[6]
             a = w.act(env)
             if not targets or not np.array_equal(w.target, targets[-1]):
-                if targets:  # how close the hand came to the way-point it leaves
+                if targets:  # how close the hand came to the way-point it leaves, and the wrist to its angle
                     reached.append(np.linalg.norm(targets[-1] - ee) < 0.03)
                     closer.append(np.linalg.norm(targets[-1] - ee) < np.linalg.norm(targets[-1] - start))
+                    turned.append(abs(wrists[-1] - wrist) < abs(wrists[-1] - wrist_start) - 0.05)
                 targets.append(w.target.copy())
+                wrists.append(w.wrist_target)
+                wrist_start = wrist
                 grips.append(a[4])
                 marks.append(list(landmark_positions(env).values()))  # where the landmarks were then
                 start = ee
@@ -86,11 +91,18 @@ def test_wanderer_goes_to_its_way_points_near_landmarks_and_in_the_box():
         # Some way-points lie beyond the arm's reach or inside an object; the rest are reached.
         assert len(targets) >= 4 and len(set(grips)) >= 2
         assert any(reached) and np.mean(closer) >= 0.75, (reached, closer)
+        lo, hi = env.joint_bounds[6]
+        assert np.mean(turned) >= 0.75 and min(wrists) < lo / 2 and max(wrists) > hi / 2, (wrists, turned)
+        heights = []  # of near way-points over their landmark: some press on it (below its centre)
         for t, then in zip(targets, marks, strict=True):
-            if near:  # above one of the landmarks, within 5 cm across
-                assert min(np.abs(t[:2] - m[:2]).max() for m in then) <= 0.05 + 1e-6
+            if near:  # at one of the landmarks, within 5 cm across
+                mark = min(then, key=lambda m: np.abs(t[:2] - m[:2]).max())
+                assert np.abs(t[:2] - mark[:2]).max() <= 0.05 + 1e-6
+                heights.append(t[2] - mark[2])
             else:
                 assert np.all(t >= WANDER_LOW) and np.all(t <= WANDER_HIGH)
+        if near:
+            assert min(heights) < 0 < max(heights) and -0.05 <= min(heights) and max(heights) <= 0.15
     assert set(landmark_positions(env)) == set(LANDMARKS) and "red_button" not in LANDMARKS
     ee = env.data.site_xpos[env._ee_site]
     first, second = Wanderer(env, seed=4), Wanderer(env, seed=4)

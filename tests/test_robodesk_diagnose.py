@@ -1,0 +1,90 @@
+"""benchmarks/robodesk_diagnose.py: the distance from the agent's arm poses to a dataset's (part 5)."""
+
+import sys
+
+import numpy as np
+import torch
+from conftest import ROOT
+
+sys.path.insert(0, str(ROOT / "benchmarks"))
+import robodesk_diagnose as D  # noqa: E402
+
+
+def test_joint_coverage_measures_from_the_agent_and_from_whole_held_out_episodes(tmp_path):
+    rng = np.random.default_rng(0)
+    # a slow random walk in episodes of 50 steps from two sources in turn; the first two are held out
+    walk = np.cumsum(rng.normal(0, 0.05, size=(600, 76)), axis=0).astype(np.float32)
+    source = np.repeat(["expert", "wander"] * 6, 50)
+    (tmp_path / "robodesk").mkdir()
+    np.savez(tmp_path / "robodesk" / "shard_00000.npz", attr=walk, source=source)
+    # the agent on poses of the pool's expert episodes: distance 0 to them, > 0 to the other source
+    on = D.joint_coverage(walk[200:250], str(tmp_path), held_out=100)
+    assert on["expert"][0] == 0 and on["wander"][0] > 0
+    # held-out episodes are measured from outside the pool: a sample's own episode neighbours are not in it
+    assert on["expert"][1] > 0.05 and on["wander"][1] > 0.05
+    # 10 std along each of the 9 joints: about 10 * sqrt(9) = 30 std units from any sample
+    far = D.joint_coverage(walk[200:250] + 10 * walk.std(0), str(tmp_path), held_out=100)
+    assert 25 < far["expert"][0] < 35 and far["expert"][1] < 10
+
+
+def test_reward_transfer_leaves_each_agent_out_and_tells_a_reader_that_carries_from_one_that_does_not(
+    monkeypatch,
+):
+    """Three agents in overlapping regions, reward a smooth function of the state: the true attributes
+    carry it to the agent left out; a reader of noise fits the training agents and misses the left-out
+    one's reward by about its spread."""
+    rng = np.random.default_rng(0)
+
+    def episodes(path, n, seed):
+        attr = rng.normal(0.3 * int(path), 1.0, size=(2001, 76)).astype(np.float32)  # agent k about 0.3 k
+        r = np.tanh(0.5 * (attr[1:, 18] + attr[1:, 19]))  # the reward of step t reads the state it leads to
+        noise = torch.randn(2001, 76)
+        z = {"fused": noise, "vision": noise, "attributes": torch.as_tensor(attr)}
+        return {"z": z, "attr": attr, "next": list(range(1, 2001)), "r": list(r)}
+
+    monkeypatch.setattr(D, "agent_episodes", episodes)
+    out = D.reward_transfer(("0", "1", "2"), 1, steps=600)
+    assert set(out) == {"fused", "vision", "attributes", "true attributes"}
+    assert out["true attributes"][1] < 0.2 and out["attributes"][1] < 0.2
+    assert out["fused"][0] < 0.2 < 0.4 < out["fused"][1]
+
+
+def test_held_out_by_source_reads_the_end_effector_of_each_sources_held_out_samples(tmp_path):
+    """A stand-in GW whose z is the attributes scaled by alpha_attr, decoded as they are: the attributes
+    alone give the end effector back exactly, vision (z = 0) misses it by its norm, fusion by half."""
+    rng = np.random.default_rng(0)
+    attr = rng.normal(size=(300, 76)).astype(np.float32)
+    source = np.repeat(["expert", "wander", "random"], 100)
+    (tmp_path / "robodesk").mkdir()
+    image = np.zeros((300, 64, 64, 3), np.uint8)
+    np.savez(tmp_path / "robodesk" / "shard_00000.npz", image=image, attr=attr, source=source)
+
+    class Stand:
+        attr_mean, attr_std = torch.zeros(76), torch.ones(76)
+        vae_attr = type("V", (), {"decoder": staticmethod(lambda u: u)})
+        gw = type("W", (), {"d": {"attr": lambda z: z}})
+
+        def __call__(self, batch, alpha_v, alpha_attr):
+            return alpha_attr * torch.as_tensor(batch["attr"])
+
+    out = D.held_out_by_source({"gw": Stand()}, str(tmp_path), held_out=200)
+    assert {src for _, src, _ in out} == {"expert", "wander"}  # the third source lies beyond the front
+    norm = 100 * np.linalg.norm(attr[:100, 18:21], axis=1).mean()
+    assert out["gw", "expert", "attributes"] == 0 and out["gw", "wander", "attributes"] == 0
+    np.testing.assert_allclose(out["gw", "expert", "vision"], norm, rtol=1e-5)
+    np.testing.assert_allclose(out["gw", "expert", "fused"], norm / 2, rtol=1e-5)
+
+
+def test_pose_shares_count_the_steps_in_each_pose_per_source_and_for_the_agent(tmp_path):
+    attr = np.zeros((40, 76), np.float32)
+    attr[:, 5] = 2.0  # joint 6 straight
+    attr[:10, 6] = -2.5  # expert rows 0-9: the wrist at its low end
+    attr[20:25, 5] = 0.5  # wanderer rows 20-24: joint 6 bent
+    source = np.repeat(["expert", "wander"], 20)
+    (tmp_path / "robodesk").mkdir()
+    np.savez(tmp_path / "robodesk" / "shard_00000.npz", attr=attr, source=source)
+    agent = np.zeros((4, 76), np.float32)
+    agent[:, 5], agent[:3, 6] = 2.0, 2.0
+    out = D.pose_shares(agent, str(tmp_path))
+    assert out["expert"] == {"wrist < -2.4 rad": 0.5, "wrist > 1.5 rad": 0.0, "joint 6 < 1 rad": 0.0}
+    assert out["wander"]["joint 6 < 1 rad"] == 0.25 and out["agent"]["wrist > 1.5 rad"] == 0.75
