@@ -14,6 +14,18 @@ World model: h_{t+1} = GRU(h_t, [z_t, a_t]); heads predict z_{t+1}, r_{t+1}, d_{
 Actor-critic on h_t, trained only on imagined rollouts (DreamerV3's actor-critic, no gradient between the
 world model and the actor-critic). Experiments that are not the paper's model (other actor-critic inputs,
 a stop-gradient in the heads, the true attributes as z_t) live in benchmarks/experiments/.
+
+Reading map, top to bottom:
+    Args, TABLE, SIZES, CPU_*     the paper's settings (appendix tables) and the --cpu-preset
+    TwoHot, WorldModel            symlog two-hot values; h_{t+1} = GRU(h_t, [z_t, a_t]) and its heads
+    Actor, Critic, ReturnScale    DreamerV3's actor-critic on h_t
+    Replay                        z_t, encoded once when collected (the GW is frozen)
+    world_model_loss ... dream_loss   L_WM, dreams from replayed states, the actor-critic's losses
+    train_update                  one global training step (Algorithm 1, lines 6-14)
+    main                          Algorithm 1: act, store, train, then log / evaluate / film / save when due
+    run_episodes, dream_filmstrip evaluation episodes and real frames beside a dream
+    VisualVAE ... FrozenEncoder   the frozen VAEs and GW of pretrain_vae_gw.py
+    SCRIPT ... start_run          this script's part of the run; below the ==== fence, the shared block
 """
 
 from __future__ import annotations
@@ -477,16 +489,12 @@ class Agent(nn.Module):
         self.discrete = env == "simple_shapes"
         self.twohot = TwoHot()
         self.wm = WorldModel(s, z_dim, s["actions"], 255 if reward_loss == "twohot" else 1)
-        ac_in = self.feature_size(s, z_dim)
+        ac_in = s["gru_hidden"]  # the actor and critic read h_t (see ``features``)
         self.actor = Actor(ac_in, s["actions"], s["ac_layers"], self.discrete, s["ac_width"])
         self.critic = Critic(ac_in, s["ac_layers"], s["ac_width"])
         self.reward_dec = RewardDecoder(reward_loss, self.twohot)
         self.slow_critic = copy.deepcopy(self.critic).requires_grad_(False)
         self.return_scale = ReturnScale(return_norm_decay)
-
-    @staticmethod
-    def feature_size(sizes: dict, z_dim: int) -> int:
-        return sizes["gru_hidden"]
 
     def features(self, h: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
         """What the actor and critic read: the GRU state h_t (the text; the tables' input sizes 64 and
@@ -902,7 +910,19 @@ def main(args: Args) -> dict:
             state.updates += 1
             state.flops += state.flops_per_update
 
-        bookkeeping(run, logs)
+        # What is due at this step: the last update's losses and a progress line (--log-every), an
+        # evaluation on fresh episodes (--eval-every), real frames beside a dream (--video-every), a save.
+        if state.env_steps % args.log_every < n_envs * ACTION_REPEAT[args.env] and logs:
+            log_progress(run, logs)
+        if state.env_steps >= state.next_eval:
+            state.next_eval += args.eval_every
+            evaluate(run)
+        if state.env_steps >= state.next_video:
+            state.next_video += args.video_every or args.total_steps
+            strip = dream_filmstrip(agent, encoder, args, 16, seed=10**6)
+            run.writer.add_image("dreams/real_top_imagined_bottom", strip, state.env_steps, dataformats="HWC")
+        if save_due(run):
+            save(run)
         if stop.requested:
             envs_.close()
             stop.restore()
@@ -1227,6 +1247,9 @@ SCRIPT = {
     "eval_keys": lambda args: EVAL_KEYS,
     "experiments": EXPERIMENT_KEYS,
     "video": lambda run: dream_filmstrip(run.agent, run.frozen, run.args, 16, seed=10**6),
+    "progress": lambda logs: (
+        f"wm {logs['loss_wm']:.3f} (z {logs['loss_z']:.3f} r {logs['loss_r']:.3f} d {logs['loss_d']:.3f})"
+    ),
 }
 
 
@@ -1411,46 +1434,6 @@ def start_run(args: Args, encoder: FrozenEncoder, agent: Agent, paths: dict, age
             "about 2.3 h beside another run (docs/gw_dreamer.md)"
         )
     return run
-
-
-def bookkeeping(run: Run, logs: dict) -> None:
-    """What is due at this env step: scalars and a progress line, an evaluation, a dream video, a save."""
-    a, s, w = run.args, run.state, run.writer
-    step, repeat = s.env_steps, ACTION_REPEAT[a.env]
-    if step % a.log_every < a.num_envs * repeat and logs:
-        logs = {k: float(v) for k, v in logs.items()}  # the one host sync per log interval
-        if not all(map(math.isfinite, logs.values())):  # --compile checks here, not in the update
-            raise FloatingPointError(f"non-finite losses by env step {step:,}; {last_good(run.agent_path)}")
-        sps = (step - run.steps0) / max(time.time() - run.t0, 1e-9)
-        for k, v in logs.items():
-            w.add_scalar(f"losses/{k}", v, step)
-        w.add_scalar("charts/SPS", sps, step)
-        w.add_scalar("charts/updates", s.updates, step)
-        w.add_scalar("charts/agent_steps", step // repeat, step)
-        w.add_scalar("charts/train_flops", s.flops, step)
-        smooth = np.mean(s.recent) if s.recent else float("nan")
-        eta = (a.total_steps - step) / max(sps, 1e-9) / 60
-        print(
-            f"[{TAG}] step {step:,}/{a.total_steps:,} updates {s.updates:,} {sps:.1f} steps/s "
-            f"ETA {eta:.1f} min | wm {logs['loss_wm']:.3f} (z {logs['loss_z']:.3f} r {logs['loss_r']:.3f} "
-            f"d {logs['loss_d']:.3f}) smoothed normalised return {smooth:.3f}",
-            flush=True,
-        )
-    if step >= s.next_eval:
-        s.next_eval += a.eval_every
-        rets, succ = run_episodes(run.agent, run.frozen, a, a.eval_episodes, "none", seed=10**6 + step)
-        w.add_scalar("eval/episodic_return", rets.mean(), step)
-        if run.ref:
-            w.add_scalar("eval/normalised_return", run.normalise(float(rets.mean())), step)
-        if a.env == "robodesk":
-            w.add_scalar("eval/success_count", succ.mean(), step)
-    if step >= s.next_video:
-        s.next_video += a.video_every or a.total_steps
-        strip = dream_filmstrip(run.agent, run.frozen, a, 16, seed=10**6)
-        w.add_image("dreams/real_top_imagined_bottom", strip, step, dataformats="HWC")
-    if step >= s.next_save or time.time() - run.last_save >= 60 * a.save_minutes:
-        s.next_save += a.save_every if step >= s.next_save else 0
-        save(run)
 
 
 # ==== run infrastructure: the same in every agent script (tests/test_shared_code.py) ====
@@ -1832,6 +1815,50 @@ def load_agent_checkpoint(path: Path, args, fingerprint: float) -> dict:
     if args.resume:
         check_unrecorded(path, saved, args, MAY_CHANGE)
     return ckpt
+
+
+def log_progress(run, logs: dict) -> None:
+    """Every --log-every steps: the last update's losses and the loop's counters to TensorBoard, and a
+    progress line that shows the losses SCRIPT["progress"] names (the one host sync of the interval)."""
+    a, s, w, step = run.args, run.state, run.writer, run.state.env_steps
+    logs = {k: float(v) for k, v in logs.items()}
+    if not all(map(math.isfinite, logs.values())):  # --compile checks here, not in the update
+        raise FloatingPointError(f"non-finite losses by env step {step:,}; {last_good(run.agent_path)}")
+    sps = (step - run.steps0) / max(time.time() - run.t0, 1e-9)
+    for k, v in logs.items():
+        w.add_scalar(f"charts/{k}" if k in SCRIPT.get("charts", ()) else f"losses/{k}", v, step)
+    w.add_scalar("charts/SPS", sps, step)
+    w.add_scalar("charts/updates", s.updates, step)
+    w.add_scalar("charts/agent_steps", step // ACTION_REPEAT[a.env], step)
+    w.add_scalar("charts/train_flops", s.flops, step)
+    smooth = np.mean(s.recent) if s.recent else float("nan")
+    eta = (a.total_steps - step) / max(sps, 1e-9) / 60
+    print(
+        f"[{TAG}] step {step:,}/{a.total_steps:,} updates {s.updates:,} {sps:.1f} steps/s ETA {eta:.1f} min"
+        f" | {SCRIPT['progress'](logs)} smoothed normalised return {smooth:.3f}",
+        flush=True,
+    )
+
+
+def evaluate(run) -> None:
+    """An evaluation while training: --eval-episodes fresh episodes of the current policy."""
+    a, w, step = run.args, run.writer, run.state.env_steps
+    rets, succ = run_episodes(run.agent, run.frozen, a, a.eval_episodes, "none", seed=10**6 + step)
+    w.add_scalar("eval/episodic_return", rets.mean(), step)
+    if run.ref:
+        w.add_scalar("eval/normalised_return", run.normalise(float(rets.mean())), step)
+    if a.env == "robodesk":
+        w.add_scalar("eval/success_count", succ.mean(), step)
+
+
+def save_due(run) -> bool:
+    """A resumable save is due every --save-every steps, and after --save-minutes of wall time since the
+    last save (which leaves the step schedule as it is)."""
+    s, a = run.state, run.args
+    if s.env_steps >= s.next_save:
+        s.next_save += a.save_every
+        return True
+    return time.time() - run.last_save >= 60 * a.save_minutes
 
 
 def save(run) -> None:

@@ -13,6 +13,18 @@ Only the VAEs are pre-trained; the GW starts from random weights.
 Each global training step (Algorithm 2): two GW updates with the full L_GW of eq. 1-3 on replayed
 observations (their frozen VAE means u_v, u_attr), then the world model on z_t = GW(u_v, u_attr) at
 alpha_v = alpha_attr = 0.5 from the updated GW, then the actor-critic on dreams, as in gw_dreamer.py.
+
+Reading map, top to bottom:
+    Args, TABLE, SIZES, CPU_*     the paper's settings (appendix tables) and the --cpu-preset
+    gw_losses, gw_lr              L_GW of eq. 1-3 with random fusion weights, the GW's OneCycle schedule
+    TwoHot ... Agent              the world model and actor-critic of gw_dreamer.py, and the trained GW
+    Replay                        the frozen VAE means (u_v, u_attr), re-fused by the current GW
+    world_model_loss ... dream_loss   L_WM, dreams from replayed states, the actor-critic's losses
+    gw_update, train_update       one global training step (Algorithm 2)
+    main                          Algorithm 2: act, store, train, then log / evaluate / film / save when due
+    run_episodes, dream_filmstrip evaluation episodes and real frames beside a dream
+    VisualVAE ... FrozenVAEs      the frozen VAEs of pretrain_vae_gw.py
+    SCRIPT ... start_run          this script's part of the run; below the ==== fence, the shared block
 """
 
 from __future__ import annotations
@@ -1013,7 +1025,19 @@ def main(args: Args) -> dict:
             state.gw_updates += args.gw_updates
             state.flops += state.flops_per_update
 
-        bookkeeping(run, logs)
+        # What is due at this step: the last update's losses and a progress line (--log-every), an
+        # evaluation on fresh episodes (--eval-every), real frames beside a dream (--video-every), a save.
+        if state.env_steps % args.log_every < n_envs * ACTION_REPEAT[args.env] and logs:
+            log_progress(run, logs)
+        if state.env_steps >= state.next_eval:
+            state.next_eval += args.eval_every
+            evaluate(run)
+        if state.env_steps >= state.next_video:
+            state.next_video += args.video_every or args.total_steps
+            strip = dream_filmstrip(agent, vaes, args, 16, seed=10**6)
+            run.writer.add_image("dreams/real_top_imagined_bottom", strip, state.env_steps, dataformats="HWC")
+        if save_due(run):
+            save(run)
         if stop.requested:
             envs_.close()
             stop.restore()
@@ -1286,6 +1310,11 @@ SCRIPT = {
     # On RoboDesk --cpu-preset sets the network sizes; on Simple Shapes only the GW's batch.
     "eval_keys": lambda args: EVAL_KEYS + (("cpu_preset",) if args.env == "robodesk" else ()),
     "video": lambda run: dream_filmstrip(run.agent, run.frozen, run.args, 16, seed=10**6),
+    "progress": lambda logs: (
+        f"wm {logs['loss_wm']:.3f} (z {logs['loss_z']:.3f} r {logs['loss_r']:.3f} d {logs['loss_d']:.3f}) "
+        f"gw {logs.get('loss_gw', math.nan):.3f}"
+    ),
+    "charts": ("gw_lr",),  # scalars of the progress logs that are no losses
 }
 
 
@@ -1449,47 +1478,6 @@ def start_run(args: Args, vaes: FrozenVAEs, agent: Agent, paths: dict, agent_pat
     print(f"[{TAG}] {schedule(args)}")
     print(f"[{TAG}] {describe_reference(ref, args)}")
     return run
-
-
-def bookkeeping(run: Run, logs: dict) -> None:
-    """What is due at this env step: scalars and a progress line, an evaluation, a dream video, a save."""
-    a, s, w = run.args, run.state, run.writer
-    step, repeat = s.env_steps, ACTION_REPEAT[a.env]
-    if step % a.log_every < a.num_envs * repeat and logs:
-        logs = {k: float(v) for k, v in logs.items()}  # the one host sync per log interval
-        if not all(map(math.isfinite, logs.values())):  # --compile checks here, not in the update
-            raise FloatingPointError(f"non-finite losses by env step {step:,}; {last_good(run.agent_path)}")
-        sps = (step - run.steps0) / max(time.time() - run.t0, 1e-9)
-        for k, v in logs.items():
-            w.add_scalar(f"charts/{k}" if k == "gw_lr" else f"losses/{k}", v, step)
-        w.add_scalar("charts/SPS", sps, step)
-        w.add_scalar("charts/updates", s.updates, step)
-        w.add_scalar("charts/agent_steps", step // repeat, step)
-        w.add_scalar("charts/train_flops", s.flops, step)
-        smooth = np.mean(s.recent) if s.recent else float("nan")
-        eta = (a.total_steps - step) / max(sps, 1e-9) / 60
-        print(
-            f"[{TAG}] step {step:,}/{a.total_steps:,} updates {s.updates:,} {sps:.1f} steps/s "
-            f"ETA {eta:.1f} min | wm {logs['loss_wm']:.3f} (z {logs['loss_z']:.3f} r {logs['loss_r']:.3f} "
-            f"d {logs['loss_d']:.3f}) gw {logs.get('loss_gw', math.nan):.3f} "
-            f"smoothed normalised return {smooth:.3f}",
-            flush=True,
-        )
-    if step >= s.next_eval:
-        s.next_eval += a.eval_every
-        rets, succ = run_episodes(run.agent, run.frozen, a, a.eval_episodes, "none", seed=10**6 + step)
-        w.add_scalar("eval/episodic_return", rets.mean(), step)
-        if run.ref:
-            w.add_scalar("eval/normalised_return", run.normalise(float(rets.mean())), step)
-        if a.env == "robodesk":
-            w.add_scalar("eval/success_count", succ.mean(), step)
-    if step >= s.next_video:
-        s.next_video += a.video_every or a.total_steps
-        strip = dream_filmstrip(run.agent, run.frozen, a, 16, seed=10**6)
-        w.add_image("dreams/real_top_imagined_bottom", strip, step, dataformats="HWC")
-    if step >= s.next_save or time.time() - run.last_save >= 60 * a.save_minutes:
-        s.next_save += a.save_every if step >= s.next_save else 0
-        save(run)
 
 
 # ==== run infrastructure: the same in every agent script (tests/test_shared_code.py) ====
@@ -1871,6 +1859,50 @@ def load_agent_checkpoint(path: Path, args, fingerprint: float) -> dict:
     if args.resume:
         check_unrecorded(path, saved, args, MAY_CHANGE)
     return ckpt
+
+
+def log_progress(run, logs: dict) -> None:
+    """Every --log-every steps: the last update's losses and the loop's counters to TensorBoard, and a
+    progress line that shows the losses SCRIPT["progress"] names (the one host sync of the interval)."""
+    a, s, w, step = run.args, run.state, run.writer, run.state.env_steps
+    logs = {k: float(v) for k, v in logs.items()}
+    if not all(map(math.isfinite, logs.values())):  # --compile checks here, not in the update
+        raise FloatingPointError(f"non-finite losses by env step {step:,}; {last_good(run.agent_path)}")
+    sps = (step - run.steps0) / max(time.time() - run.t0, 1e-9)
+    for k, v in logs.items():
+        w.add_scalar(f"charts/{k}" if k in SCRIPT.get("charts", ()) else f"losses/{k}", v, step)
+    w.add_scalar("charts/SPS", sps, step)
+    w.add_scalar("charts/updates", s.updates, step)
+    w.add_scalar("charts/agent_steps", step // ACTION_REPEAT[a.env], step)
+    w.add_scalar("charts/train_flops", s.flops, step)
+    smooth = np.mean(s.recent) if s.recent else float("nan")
+    eta = (a.total_steps - step) / max(sps, 1e-9) / 60
+    print(
+        f"[{TAG}] step {step:,}/{a.total_steps:,} updates {s.updates:,} {sps:.1f} steps/s ETA {eta:.1f} min"
+        f" | {SCRIPT['progress'](logs)} smoothed normalised return {smooth:.3f}",
+        flush=True,
+    )
+
+
+def evaluate(run) -> None:
+    """An evaluation while training: --eval-episodes fresh episodes of the current policy."""
+    a, w, step = run.args, run.writer, run.state.env_steps
+    rets, succ = run_episodes(run.agent, run.frozen, a, a.eval_episodes, "none", seed=10**6 + step)
+    w.add_scalar("eval/episodic_return", rets.mean(), step)
+    if run.ref:
+        w.add_scalar("eval/normalised_return", run.normalise(float(rets.mean())), step)
+    if a.env == "robodesk":
+        w.add_scalar("eval/success_count", succ.mean(), step)
+
+
+def save_due(run) -> bool:
+    """A resumable save is due every --save-every steps, and after --save-minutes of wall time since the
+    last save (which leaves the step schedule as it is)."""
+    s, a = run.state, run.args
+    if s.env_steps >= s.next_save:
+        s.next_save += a.save_every
+        return True
+    return time.time() - run.last_save >= 60 * a.save_minutes
 
 
 def save(run) -> None:

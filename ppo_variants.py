@@ -15,6 +15,15 @@ Inputs per variant (4 stacked frames each):
 - vae: the concatenated frozen VAE means [u_v, u_attr];
 - clip / gw: the single fused representation z = tanh(0.5 e_v(u_v) + 0.5 e_attr(u_attr)) of the frozen
   CLIP-like / GW model.
+
+Reading map, top to bottom:
+    Args, ENV_SPECS               the settings, and the shapes of each environment's inputs
+    RawExtractor, Agent           the image + attribute CNN for raw inputs, the policy and value heads
+    ppo_loss, gae, ppo_update     the clipped PPO loss, advantages, one minibatch update
+    main                          rollouts, GAE, update epochs, the log line and the saves
+    FrameStack ... run_episodes   4-frame stacks, the environments, evaluation episodes
+    VisualVAE ... Observer        the frozen VAEs, GW or CLIP-like model of pretrain_vae_gw.py
+    SCRIPT ... log_iteration      this script's part of the run; below the ==== fence, the shared block
 """
 
 from __future__ import annotations
@@ -1276,6 +1285,50 @@ def load_agent_checkpoint(path: Path, args, fingerprint: float) -> dict:
     if args.resume:
         check_unrecorded(path, saved, args, MAY_CHANGE)
     return ckpt
+
+
+def log_progress(run, logs: dict) -> None:
+    """Every --log-every steps: the last update's losses and the loop's counters to TensorBoard, and a
+    progress line that shows the losses SCRIPT["progress"] names (the one host sync of the interval)."""
+    a, s, w, step = run.args, run.state, run.writer, run.state.env_steps
+    logs = {k: float(v) for k, v in logs.items()}
+    if not all(map(math.isfinite, logs.values())):  # --compile checks here, not in the update
+        raise FloatingPointError(f"non-finite losses by env step {step:,}; {last_good(run.agent_path)}")
+    sps = (step - run.steps0) / max(time.time() - run.t0, 1e-9)
+    for k, v in logs.items():
+        w.add_scalar(f"charts/{k}" if k in SCRIPT.get("charts", ()) else f"losses/{k}", v, step)
+    w.add_scalar("charts/SPS", sps, step)
+    w.add_scalar("charts/updates", s.updates, step)
+    w.add_scalar("charts/agent_steps", step // ACTION_REPEAT[a.env], step)
+    w.add_scalar("charts/train_flops", s.flops, step)
+    smooth = np.mean(s.recent) if s.recent else float("nan")
+    eta = (a.total_steps - step) / max(sps, 1e-9) / 60
+    print(
+        f"[{TAG}] step {step:,}/{a.total_steps:,} updates {s.updates:,} {sps:.1f} steps/s ETA {eta:.1f} min"
+        f" | {SCRIPT['progress'](logs)} smoothed normalised return {smooth:.3f}",
+        flush=True,
+    )
+
+
+def evaluate(run) -> None:
+    """An evaluation while training: --eval-episodes fresh episodes of the current policy."""
+    a, w, step = run.args, run.writer, run.state.env_steps
+    rets, succ = run_episodes(run.agent, run.frozen, a, a.eval_episodes, "none", seed=10**6 + step)
+    w.add_scalar("eval/episodic_return", rets.mean(), step)
+    if run.ref:
+        w.add_scalar("eval/normalised_return", run.normalise(float(rets.mean())), step)
+    if a.env == "robodesk":
+        w.add_scalar("eval/success_count", succ.mean(), step)
+
+
+def save_due(run) -> bool:
+    """A resumable save is due every --save-every steps, and after --save-minutes of wall time since the
+    last save (which leaves the step schedule as it is)."""
+    s, a = run.state, run.args
+    if s.env_steps >= s.next_save:
+        s.next_save += a.save_every
+        return True
+    return time.time() - run.last_save >= 60 * a.save_minutes
 
 
 def save(run) -> None:

@@ -26,9 +26,7 @@ from conftest import (
     run_script,
 )
 
-import dreamer_baseline as D
 import gw_dreamer as G
-import gw_dreamer_e2e as E
 import pretrain_vae_gw as P
 
 
@@ -383,6 +381,7 @@ BAD_FLAGS = [
     ("ppo_variants.py", ["--torch-threads", "-2"], "--torch-threads -2: must not be negative"),
     ("gw_dreamer_e2e.py", ["--smoothing", "0"], "--smoothing 0: must be at least 1"),
     ("ppo_variants.py", ["--gae-lambda", "1.5"], "--gae-lambda 1.5: must be in [0, 1]"),
+    ("gw_dreamer.py", ["--criterion", "nan"], "--criterion nan: must be a finite number"),
     (
         "gw_dreamer.py",
         ["--env", "robodesk", "--task", "stack", "--stop-at-criterion"],
@@ -616,23 +615,17 @@ def test_ppo_trains_at_least_the_steps_asked_in_whole_rollouts(pretrained, tmp_p
     assert torch.load(tmp_path / "agent.pt", weights_only=False)["state"]["env_steps"] == 64
 
 
-@pytest.mark.parametrize("module", [G, E, D], ids=["gw_dreamer", "gw_dreamer_e2e", "dreamer_baseline"])
-def test_a_run_saves_after_save_minutes_of_wall_time_between_step_saves(module, monkeypatch):
-    """A checkpoint is written when --save-minutes of wall time have passed since the last one, even
-    before --save-every steps; the step schedule stays as it was. Fails if the wall-clock save is missing
-    or if it shifts the next step save."""
-    saved = []
-    monkeypatch.setattr(module, "save", lambda run: saved.append(run.state.env_steps))
-    args = SimpleNamespace(
-        env="simple_shapes", num_envs=1, log_every=10**9, save_every=1000, save_minutes=15.0
-    )
-    state = module.LoopState(env_steps=500, next_eval=10**9, next_save=1000, next_video=10**9)
-    run = SimpleNamespace(args=args, state=state, writer=None, last_save=time.time() - 14 * 60)
-    module.bookkeeping(run, {})
-    assert saved == []
+def test_a_run_saves_after_save_minutes_of_wall_time_between_step_saves():
+    """A save is due when --save-minutes of wall time have passed since the last one, even before
+    --save-every steps; the step schedule stays as it was (save_due, in the block every agent script
+    ends in). Fails if the wall-clock save is missing or if it shifts the next step save."""
+    args = SimpleNamespace(save_every=1000, save_minutes=15.0)
+    state = G.LoopState(env_steps=500, next_save=1000)
+    run = SimpleNamespace(args=args, state=state, last_save=time.time() - 14 * 60)
+    assert not G.save_due(run)
     run.last_save = time.time() - 16 * 60
-    module.bookkeeping(run, {})
-    assert saved == [500] and state.next_save == 1000
+    assert G.save_due(run) and state.next_save == 1000
     run.last_save, state.env_steps = time.time(), 1000
-    module.bookkeeping(run, {})
-    assert saved == [500, 1000] and state.next_save == 2000
+    assert G.save_due(run) and state.next_save == 2000
+    run.last_save, state.env_steps = time.time(), 1500
+    assert not G.save_due(run)

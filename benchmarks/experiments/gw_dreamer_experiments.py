@@ -16,6 +16,7 @@ Runs are named like gw_dreamer.py's with one suffix per experiment (``_hz``, ``_
 
 from __future__ import annotations
 
+import copy
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -176,6 +177,12 @@ def experiment_agent(args: Args) -> type[G.Agent]:
     class ExperimentAgent(G.Agent):
         def __init__(self, env, z_dim, reward_loss, return_norm_decay=0.99, cpu_preset=False):
             super().__init__(env, z_dim, reward_loss, return_norm_decay, cpu_preset)
+            if args.ac_input == "hz":  # the actor and critic read z_t beside h_t
+                s = G.sizes_of(env, cpu_preset)
+                ac_in = s["gru_hidden"] + z_dim
+                self.actor = G.Actor(ac_in, s["actions"], s["ac_layers"], self.discrete, s["ac_width"])
+                self.critic = G.Critic(ac_in, s["ac_layers"], s["ac_width"])
+                self.slow_critic = copy.deepcopy(self.critic).requires_grad_(False)
             if args.heads_read_sg_z:
                 self.wm.__class__ = SgZWorldModel  # same parameters, other forward
             if args.wm_residual:
@@ -188,10 +195,6 @@ def experiment_agent(args: Args) -> type[G.Agent]:
                     nn.init.zeros_(last.weight)
                     nn.init.zeros_(last.bias)
                 self.slow_critic.load_state_dict(self.critic.state_dict())
-
-        @staticmethod
-        def feature_size(sizes, z_dim):
-            return sizes["gru_hidden"] + (z_dim if args.ac_input == "hz" else 0)
 
         def features(self, h, z):
             h = h[..., : self.wm.gru.hidden_size]  # --wm-residual's state carries z_t after h
