@@ -200,3 +200,34 @@ def test_residual_world_model_predicts_a_change_of_z_and_acts_on_the_gru_state()
     dream = G.imagine(agent, h_entry[:, -1], batch["z"][:, -1], 4)
     assert dream.feats.shape == (5, 3, hidden)  # the actor and critic read h, not z_t
     torch.testing.assert_close(dream.feats[0], h_entry[:, -1, :hidden])
+
+
+def test_explore_noise_widens_the_collected_actions_only():
+    """--explore-noise 0.3: the actions taken while collecting spread by sqrt(std^2 + 0.3^2) around the
+    actor's mean; evaluations (gw_dreamer.run_episodes) and the dreams' samples keep the actor's own
+    spread."""
+    torch.manual_seed(0)
+    args = X.Args(env="robodesk", cpu_preset=True, explore_noise=0.3)
+    agent = X.experiment_agent(args)("robodesk", 76, "twohot", cpu_preset=True)
+    with torch.no_grad():  # a policy with mean 0 and std at its 0.1 floor, so nothing is clipped
+        agent.actor.net[-1].weight.zero_()
+        agent.actor.net[-1].bias.copy_(torch.tensor([0.0] * 5 + [-30.0] * 5))
+        h = torch.zeros(20_000, agent.wm.hidden)
+        collected = agent.actor.act(h)
+        dreamt = agent.actor.sample(agent.actor(h))
+    torch.testing.assert_close(
+        collected.std(0), torch.full((5,), (0.1**2 + 0.3**2) ** 0.5), rtol=0.03, atol=0
+    )
+    torch.testing.assert_close(dreamt.std(0), torch.full((5,), 0.1), rtol=0.03, atol=0)
+    seen = []
+
+    def paper_run_episodes(agent_, *a, **kw):
+        seen.append(agent_.actor.act(h).std(0))
+        return "returns"
+
+    assert X.run_episodes_without_noise(paper_run_episodes)(agent, None) == "returns"
+    torch.testing.assert_close(seen[0], torch.full((5,), 0.1), rtol=0.03, atol=0)
+    assert agent.actor.exploring  # collection is noisy again after an evaluation
+    assert X.suffix(args) == "_noise0.3"
+    with pytest.raises(G.UsageError, match="continuous actions"):
+        X.experiment_agent(X.Args(explore_noise=0.3))("simple_shapes", 10, "twohot")

@@ -11,7 +11,8 @@ checkpoints and the logs are gw_dreamer.py's.
     python benchmarks/experiments/gw_dreamer_experiments.py --env robodesk --cpu-preset --wm-residual
 
 Runs are named like gw_dreamer.py's with one suffix per experiment (``_hz``, ``_sgz``, ``_zinit``,
-``_attrz``, ``_noslope``, ``_ol10``, ``_rec0.5``, ``_res``), so they never mix with the paper's runs.
+``_attrz``, ``_noslope``, ``_ol10``, ``_rec0.5``, ``_res``, ``_noise0.3``), so they never mix with the
+paper's runs.
 """
 
 from __future__ import annotations
@@ -64,6 +65,12 @@ class Args(G.Args):
     """the z head predicts a change: z_{t+1} = tanh(atanh(z_t) + head(h_{t+1})) instead of the paper's
     tanh(head(h_{t+1})), so a world model that knows nothing of an action predicts that nothing moves
     (same parameters)"""
+    explore_noise: float = 0.0
+    """sigma > 0: Gaussian noise N(0, sigma^2) added to every continuous action the agent takes while
+    collecting training data (clipped to the action box; the replay stores the action taken), as
+    DreamerV1's exploration noise (0.3 there). With the actor's std at its 0.1 floor the replayed actions
+    are nearly a function of the state, so the world model can predict the next z without reading them;
+    noise decorrelates them. Evaluations and dreams use the actor as it is"""
     z_source: Literal["gw", "attributes"] = "gw"
     """gw: the paper's z_t. attributes (Simple Shapes only): z_t is the true attribute vector (its first
     10 entries, clipped to [-1, 1]) instead of the GW's, which tests the world model and actor-critic
@@ -80,6 +87,7 @@ def suffix(args: Args) -> str:
         + (f"_ol{args.wm_open_loop}" if args.wm_open_loop else "")
         + (f"_rec{args.recent_fraction:g}" if args.recent_fraction else "")
         + ("_res" if args.wm_residual else "")
+        + (f"_noise{args.explore_noise:g}" if args.explore_noise else "")
     )
 
 
@@ -190,6 +198,11 @@ def experiment_agent(args: Args) -> type[G.Agent]:
                 self.wm.hidden = self.wm.gru.hidden_size + z_dim
             if not args.value_slope:
                 self.critic.__class__ = ConstantInputCritic
+            if args.explore_noise:
+                if self.discrete:
+                    raise G.UsageError("--explore-noise is for continuous actions (RoboDesk)")
+                self.actor.__class__ = NoisyActor  # same parameters, noisy act
+                self.actor.sigma = args.explore_noise
             if args.zero_init:  # DreamerV3: reward and value predictions start at 0
                 for last in (self.wm.reward_head[-1], self.critic.net[-1]):
                     nn.init.zeros_(last.weight)
@@ -201,6 +214,32 @@ def experiment_agent(args: Args) -> type[G.Agent]:
             return torch.cat([h, z], -1) if args.ac_input == "hz" else h
 
     return ExperimentAgent
+
+
+class NoisyActor(G.Actor):
+    """--explore-noise: ``act`` adds N(0, sigma^2) to the sampled action while ``exploring``; ``sample``
+    (the dreams') is the paper's."""
+
+    sigma, exploring = 0.0, True
+
+    def act(self, h: torch.Tensor, mode: bool = False) -> torch.Tensor:
+        a = super().act(h, mode)
+        if self.exploring and not mode:
+            a = (a + self.sigma * torch.randn_like(a)).clamp(-1, 1)
+        return a
+
+
+def run_episodes_without_noise(paper_run_episodes):
+    """gw_dreamer.run_episodes (evaluations, the ablation) with the actor's exploration noise off."""
+
+    def run_episodes(agent, *a, **kw):
+        agent.actor.exploring = False
+        try:
+            return paper_run_episodes(agent, *a, **kw)
+        finally:
+            agent.actor.exploring = True
+
+    return run_episodes
 
 
 class AttributeEncoder(G.FrozenEncoder):
@@ -217,6 +256,10 @@ class AttributeEncoder(G.FrozenEncoder):
 def main(args: Args) -> dict:
     if args.wm_residual and args.heads_read_sg_z:
         raise G.UsageError("--wm-residual and --heads-read-sg-z are separate experiments; give one")
+    if not 0 <= args.explore_noise < 10:
+        raise G.UsageError(
+            f"--explore-noise must be a standard deviation in [0, 10), got {args.explore_noise}"
+        )
     if args.z_source == "attributes" and args.env != "simple_shapes":
         raise G.UsageError(
             "--z-source attributes is a Simple Shapes control (RoboDesk attributes are unbounded)"
@@ -235,6 +278,7 @@ def main(args: Args) -> dict:
         "Agent": experiment_agent(args),
         "load_frozen": load_frozen,
         "run_name": lambda a, model: paper_run_name(a, model + suffix(a)),
+        "run_episodes": run_episodes_without_noise(G.run_episodes),
     }
     saved = {name: getattr(G, name) for name in patches}
     for name, value in patches.items():
