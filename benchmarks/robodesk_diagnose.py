@@ -8,6 +8,10 @@
    consecutive stored steps whose x, y or z action reverses (a_t a_{t+1} < -0.25), per 10,000 frames of
    the run; a policy that learnt a period-2 reply to its own last action (the actor differentiated
    through the dreamt states it reads) pushes it from a few % to 10-40% while the arm stops moving.
+   Actions as the world model sees them: per 50,000 frames of the run, the held-out R^2 of the stored
+   action predicted from (z_t, a_{t-1}) (ridge regression on those and 256 random tanh features, 80/20
+   split) and the std of what it leaves unexplained, per action dimension. A world model learns what an
+   action does only from the part of it the state does not already predict.
 2. The world model's reward on the agent's own data: after 64 real steps of a replayed sequence, the
    next 20 rewards predicted one step ahead (real z read each step) and open loop (its own z fed back,
    as in a dream) with the actions that were taken, against the real rewards: mean |r_hat - r| at
@@ -115,6 +119,7 @@ def saturation(path: str, sequences: int, seed: int) -> dict:
         a, keep = actions[lo : lo + 2501], first[lo + 1 : lo + 2501] == 0
         flips.append(float(((a[:-1, :3] * a[1:, :3]) < -0.25)[keep].mean()))
     return out | {
+        "predictability": action_predictability(ck["replay"]),
         "env_steps": ck["state"]["env_steps"],
         "loss_z": float(terms["loss_z"]),
         "m_median": float(m.abs().median()),
@@ -128,6 +133,31 @@ def saturation(path: str, sequences: int, seed: int) -> dict:
 
 
 @torch.no_grad()
+def action_predictability(replay: dict, chunk: int = 12_500) -> list[tuple[float, np.ndarray, np.ndarray]]:
+    """Part 1: per `chunk` stored agent steps (50,000 frames), (its first frame, held-out R^2 of a_t from
+    (z_t, a_{t-1}) per action dimension, std of the residual per dimension)."""
+    count = int(replay["count"][0])
+    z, a = replay["z"][0][:count].astype(np.float64), replay["a"][0][:count].astype(np.float64)
+    first, last = replay["first"][0][:count] > 0, replay["last"][0][:count] > 0
+    a_prev = np.concatenate([np.zeros_like(a[:1]), a[:-1]])
+    a_prev[first] = 0.0
+    x = np.concatenate([z, a_prev, np.ones((count, 1))], 1)
+    w = np.random.default_rng(0).normal(size=(x.shape[1], 256)) / np.sqrt(x.shape[1])
+    x = np.concatenate([x, np.tanh(2 * x @ w)], 1)
+    out = []
+    for lo in range(0, count, chunk):
+        idx = np.flatnonzero(~last[lo : lo + chunk]) + lo  # an episode's final entry holds no action
+        if len(idx) < 1000:
+            break
+        idx = np.random.default_rng(lo).permutation(idx)
+        fit, test = idx[: len(idx) * 4 // 5], idx[len(idx) * 4 // 5 :]
+        coef = np.linalg.solve(x[fit].T @ x[fit] + np.eye(x.shape[1]), x[fit].T @ a[fit])
+        resid = a[test] - x[test] @ coef
+        r2 = 1 - (resid**2).sum(0) / ((a[test] - a[test].mean(0)) ** 2).sum(0)
+        out.append((4 * lo, r2, resid.std(0)))
+    return out
+
+
 def press_onsets(agent, replay: dict, newest: int = 20_000) -> dict:
     """One-step reward predictions (the real z read at every step) over the newest entries of the first
     replay stream, at the steps where the reward jumps by more than 0.5 (push_green: the light comes on)
@@ -562,6 +592,11 @@ def main(args: Args) -> list[dict]:
             "  x/y/z actions reversed from one step to the next, per 10,000 frames (%): "
             + " ".join(f"{100 * x:.0f}" for x in r["reversals"])
         )
+        for frame, r2, resid in r["predictability"]:
+            print(
+                f"  stored actions from frame {frame:,}: R^2 from (z_t, a_t-1) {np.round(r2, 2)}, "
+                f"unexplained std {np.round(resid, 2)}"
+            )
         print(
             f"  rewards ({r['sequences']} sequences, real mean {r['reward_mean']:.2f} per agent step): "
             f"|r_hat - r| at horizons 1/5/10/20 one step ahead {np.round(r['one_step_err'], 3)}, open loop "

@@ -88,3 +88,25 @@ def test_pose_shares_count_the_steps_in_each_pose_per_source_and_for_the_agent(t
     out = D.pose_shares(agent, str(tmp_path))
     assert out["expert"] == {"wrist < -2.4 rad": 0.5, "wrist > 1.5 rad": 0.0, "joint 6 < 1 rad": 0.0}
     assert out["wander"]["joint 6 < 1 rad"] == 0.25 and out["agent"]["wrist > 1.5 rad"] == 0.75
+
+
+def test_action_predictability_separates_actions_the_state_gives_from_noise():
+    """Part 1: actions that are a function of z_t give R^2 near 1 and almost no residual; the same plus
+    N(0, 0.3^2) leaves a residual std of 0.3; each 50,000 frames (12,500 stored steps) are one row."""
+    rng = np.random.default_rng(0)
+    n = 25_000
+    z = rng.uniform(-1, 1, size=(1, n, 76)).astype(np.float32)
+    policy = np.tanh(z[..., :5] - 0.5 * z[..., 5:10])
+    replay = {
+        "z": z,
+        "first": np.zeros((1, n), np.float32),
+        "last": np.zeros((1, n), np.float32),
+        "count": np.array([n]),
+    }
+    for noise, r2, resid in ((0.0, (0.97, 1.0), (0.0, 0.08)), (0.3, (0.6, 0.8), (0.28, 0.34))):
+        replay["a"] = (policy + noise * rng.normal(size=policy.shape)).astype(np.float32)
+        rows = D.action_predictability(replay)
+        assert [frame for frame, *_ in rows] == [0, 50_000]
+        for _, got_r2, got_resid in rows:
+            assert np.all((r2[0] < got_r2) & (got_r2 <= r2[1])), got_r2
+            assert np.all((resid[0] <= got_resid) & (got_resid < resid[1])), got_resid
