@@ -1,4 +1,5 @@
-"""benchmarks/robodesk_diagnose.py: the distance from the agent's arm poses to a dataset's (part 5)."""
+"""benchmarks/robodesk_diagnose.py: how much of the stored actions the state predicts (part 1), the distance
+from the agent's arm poses to a dataset's (part 5) and the reward read across agents (part 6)."""
 
 import sys
 
