@@ -133,7 +133,7 @@ def saturation(path: str, sequences: int, seed: int) -> dict:
 
 
 @torch.no_grad()
-def action_predictability(replay: dict, chunk: int = 12_500) -> list[tuple[float, np.ndarray, np.ndarray]]:
+def action_predictability(replay: dict, chunk: int = 12_500) -> list[tuple[int, np.ndarray, np.ndarray]]:
     """Part 1: per `chunk` stored agent steps (50,000 frames), (its first frame, held-out R^2 of a_t from
     (z_t, a_{t-1}) per action dimension, std of the residual per dimension)."""
     count = int(replay["count"][0])

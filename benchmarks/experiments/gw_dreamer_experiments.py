@@ -256,10 +256,7 @@ class AttributeEncoder(G.FrozenEncoder):
 def main(args: Args) -> dict:
     if args.wm_residual and args.heads_read_sg_z:
         raise G.UsageError("--wm-residual and --heads-read-sg-z are separate experiments; give one")
-    if not 0 <= args.explore_noise < 10:
-        raise G.UsageError(
-            f"--explore-noise must be a standard deviation in [0, 10), got {args.explore_noise}"
-        )
+    G.require(0 <= args.explore_noise < 10, "explore_noise", args.explore_noise, "must be in [0, 10)")
     if args.z_source == "attributes" and args.env != "simple_shapes":
         raise G.UsageError(
             "--z-source attributes is a Simple Shapes control (RoboDesk attributes are unbounded)"
