@@ -1722,11 +1722,15 @@ def non_finite(tree, where: str = "") -> str:
 
 
 def setting_changes(saved: dict, now: dict, keys) -> list[str]:
-    """``--flag value`` of each setting in ``keys`` whose saved value differs from this command's."""
+    """The saved ``--flag value`` (a switch: ``--flag`` or ``--no-flag``, as the CLI takes it) of each
+    setting in ``keys`` whose saved value differs from this command's."""
     out = []
     for k in (k for k in keys if k in saved and saved[k] != now[k]):
-        value = " ".join(map(str, saved[k])) if isinstance(saved[k], (list, tuple)) else saved[k]
-        out.append(f"--{k.replace('_', '-')} {value}")
+        flag, value = k.replace("_", "-"), saved[k]
+        if isinstance(value, bool):
+            out.append(f"--{flag}" if value else f"--no-{flag}")
+        else:
+            out.append(f"--{flag} {' '.join(map(str, value)) if isinstance(value, (list, tuple)) else value}")
     return out
 
 

@@ -3,10 +3,12 @@ runs stay apart from the paper's, and gw_dreamer.py refuses (with the command to
 with one."""
 
 import sys
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
+import tyro
 from conftest import ROOT, run_script, tiny_agent_args
 
 import gw_dreamer as G
@@ -231,3 +233,39 @@ def test_explore_noise_widens_the_collected_actions_only():
     assert X.suffix(args) == "_noise0.3"
     with pytest.raises(G.UsageError, match="continuous actions"):
         X.experiment_agent(X.Args(explore_noise=0.3))("simple_shapes", 10, "twohot")
+
+
+def test_explore_noise_decay_falls_to_zero_at_its_frame():
+    """--explore-noise 0.3 --explore-noise-decay 1000: the collected actions' extra noise is 0.3 at frame 0,
+    0.15 at frame 500 and none from frame 1,000, read from the run's loop state that start_run hands
+    the actor."""
+    torch.manual_seed(0)
+    args = X.Args(env="robodesk", cpu_preset=True, explore_noise=0.3, explore_noise_decay=1000)
+    agent = X.experiment_agent(args)("robodesk", 76, "twohot", cpu_preset=True)
+    state = G.LoopState()
+    run = X.start_run_with_noise_clock(lambda *a, **kw: SimpleNamespace(state=state))(args, None, agent)
+    assert run.state is state and agent.actor.clock is state
+    with torch.no_grad():
+        agent.actor.net[-1].weight.zero_()
+        agent.actor.net[-1].bias.copy_(torch.tensor([0.0] * 5 + [-30.0] * 5))
+        h = torch.zeros(20_000, agent.wm.hidden)
+        for frame, extra in [(0, 0.3), (500, 0.15), (1000, 0.0), (5000, 0.0)]:
+            state.env_steps = frame
+            want = torch.full((5,), (0.1**2 + extra**2) ** 0.5)
+            torch.testing.assert_close(agent.actor.act(h).std(0), want, rtol=0.03, atol=0)
+    assert X.suffix(args) == "_noise0.3d1000"
+    with pytest.raises(G.UsageError, match="needs --explore-noise"):
+        X.main(X.Args(env="robodesk", explore_noise_decay=1000))
+
+
+def test_refusal_names_experiment_flags_as_the_cli_takes_them():
+    """A checkpoint trained with experiments is refused by gw_dreamer.py with the flags that run it: a
+    switch as ``--flag`` / ``--no-flag`` (tyro takes no value after it), and --wm-residual among the
+    settings that change the agent's forward pass."""
+    saved = {"wm_residual": True, "value_slope": False, "ac_input": "hz", "seed": 1}
+    now = {"wm_residual": False, "value_slope": True, "ac_input": "h", "seed": 1}
+    words = G.setting_changes(saved, now, ["wm_residual", "value_slope", "ac_input", "seed"])
+    assert words == ["--wm-residual", "--no-value-slope", "--ac-input hz"]
+    parsed = tyro.cli(X.Args, args=" ".join(words).split())
+    assert (parsed.wm_residual, parsed.value_slope, parsed.ac_input) == (True, False, "hz")
+    assert G.SCRIPT["experiments"]["wm_residual"] is False

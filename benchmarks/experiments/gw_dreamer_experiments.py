@@ -11,8 +11,8 @@ checkpoints and the logs are gw_dreamer.py's.
     python benchmarks/experiments/gw_dreamer_experiments.py --env robodesk --cpu-preset --wm-residual
 
 Runs are named like gw_dreamer.py's with one suffix per experiment (``_hz``, ``_sgz``, ``_zinit``,
-``_attrz``, ``_noslope``, ``_ol10``, ``_rec0.5``, ``_res``, ``_noise0.3``), so they never mix with the
-paper's runs.
+``_attrz``, ``_noslope``, ``_ol10``, ``_rec0.5``, ``_res``, ``_noise0.3``, ``_noise0.3d150000``), so
+they never mix with the paper's runs.
 """
 
 from __future__ import annotations
@@ -71,6 +71,9 @@ class Args(G.Args):
     DreamerV1's exploration noise (0.3 there). With the actor's std at its 0.1 floor the replayed actions
     are nearly a function of the state, so the world model can predict the next z without reading them;
     noise decorrelates them. Evaluations and dreams use the actor as it is"""
+    explore_noise_decay: int = 0
+    """N > 0: the exploration noise falls linearly from --explore-noise at the first frame to 0 at frame N
+    (0: constant), so the training episodes that decide the criterion late in a run are the policy's own"""
     z_source: Literal["gw", "attributes"] = "gw"
     """gw: the paper's z_t. attributes (Simple Shapes only): z_t is the true attribute vector (its first
     10 entries, clipped to [-1, 1]) instead of the GW's, which tests the world model and actor-critic
@@ -88,6 +91,7 @@ def suffix(args: Args) -> str:
         + (f"_rec{args.recent_fraction:g}" if args.recent_fraction else "")
         + ("_res" if args.wm_residual else "")
         + (f"_noise{args.explore_noise:g}" if args.explore_noise else "")
+        + (f"d{args.explore_noise_decay}" if args.explore_noise and args.explore_noise_decay else "")
     )
 
 
@@ -202,7 +206,7 @@ def experiment_agent(args: Args) -> type[G.Agent]:
                 if self.discrete:
                     raise G.UsageError("--explore-noise is for continuous actions (RoboDesk)")
                 self.actor.__class__ = NoisyActor  # same parameters, noisy act
-                self.actor.sigma = args.explore_noise
+                self.actor.sigma, self.actor.decay = args.explore_noise, args.explore_noise_decay
             if args.zero_init:  # DreamerV3: reward and value predictions start at 0
                 for last in (self.wm.reward_head[-1], self.critic.net[-1]):
                     nn.init.zeros_(last.weight)
@@ -217,16 +221,34 @@ def experiment_agent(args: Args) -> type[G.Agent]:
 
 
 class NoisyActor(G.Actor):
-    """--explore-noise: ``act`` adds N(0, sigma^2) to the sampled action while ``exploring``; ``sample``
-    (the dreams') is the paper's."""
+    """--explore-noise: ``act`` adds N(0, sigma_t^2) to the sampled action while ``exploring``; ``sample``
+    (the dreams') is the paper's. sigma_t falls linearly to 0 at frame ``decay`` of the run's ``clock``
+    (its loop state, set by start_run) when ``decay`` > 0."""
 
-    sigma, exploring = 0.0, True
+    sigma, decay, exploring, clock = 0.0, 0, True, None
+
+    def noise_std(self) -> float:
+        if not self.decay:
+            return self.sigma
+        return self.sigma * max(0.0, 1.0 - self.clock.env_steps / self.decay)
 
     def act(self, h: torch.Tensor, mode: bool = False) -> torch.Tensor:
         a = super().act(h, mode)
         if self.exploring and not mode:
-            a = (a + self.sigma * torch.randn_like(a)).clamp(-1, 1)
+            a = (a + self.noise_std() * torch.randn_like(a)).clamp(-1, 1)
         return a
+
+
+def start_run_with_noise_clock(paper_start_run):
+    """gw_dreamer.start_run, then the noisy actor reads the run's frame count (restored on --resume)."""
+
+    def start_run(args, encoder, agent, *a, **kw):
+        run = paper_start_run(args, encoder, agent, *a, **kw)
+        if isinstance(agent.actor, NoisyActor):
+            agent.actor.clock = run.state
+        return run
+
+    return start_run
 
 
 def run_episodes_without_noise(paper_run_episodes):
@@ -257,6 +279,11 @@ def main(args: Args) -> dict:
     if args.wm_residual and args.heads_read_sg_z:
         raise G.UsageError("--wm-residual and --heads-read-sg-z are separate experiments; give one")
     G.require(0 <= args.explore_noise < 10, "explore_noise", args.explore_noise, "must be in [0, 10)")
+    G.require(
+        args.explore_noise_decay >= 0, "explore_noise_decay", args.explore_noise_decay, "must not be negative"
+    )
+    if args.explore_noise_decay and not args.explore_noise:
+        raise G.UsageError("--explore-noise-decay needs --explore-noise")
     if args.z_source == "attributes" and args.env != "simple_shapes":
         raise G.UsageError(
             "--z-source attributes is a Simple Shapes control (RoboDesk attributes are unbounded)"
@@ -276,6 +303,7 @@ def main(args: Args) -> dict:
         "load_frozen": load_frozen,
         "run_name": lambda a, model: paper_run_name(a, model + suffix(a)),
         "run_episodes": run_episodes_without_noise(G.run_episodes),
+        "start_run": start_run_with_noise_clock(G.start_run),
     }
     saved = {name: getattr(G, name) for name in patches}
     for name, value in patches.items():
