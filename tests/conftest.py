@@ -185,3 +185,16 @@ def record_calls(monkeypatch, cls, name: str, pick) -> list:
 
     monkeypatch.setattr(cls, name, spy)
     return seen
+
+
+def robodesk_batch(B: int = 3, T: int = 12) -> dict[str, torch.Tensor]:
+    """A replayed RoboDesk batch of random z, actions and rewards in which one episode ends."""
+    torch.manual_seed(1)
+    batch = {
+        "z": torch.rand(B, T + 1, 76) * 2 - 1,
+        "a": torch.rand(B, T + 1, 5) * 2 - 1,
+        "r": torch.rand(B, T + 1) * 4,
+    }
+    batch |= {k: torch.zeros(B, T + 1) for k in ("d", "first", "last")}
+    batch["last"][1, 5], batch["first"][1, 6] = 1.0, 1.0  # an episode ends inside sequence 1
+    return batch

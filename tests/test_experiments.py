@@ -3,13 +3,12 @@ runs stay apart from the paper's, and gw_dreamer.py refuses (with the command to
 with one."""
 
 import sys
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 import torch
 import tyro
-from conftest import ROOT, run_script, tiny_agent_args
+from conftest import ROOT, robodesk_batch, run_script, tiny_agent_args
 
 import gw_dreamer as G
 
@@ -108,50 +107,6 @@ def test_attribute_control_feeds_the_true_attributes(pretrained, pretrained_robo
     assert "done:" in log and (tmp_path / "runs" / "gw_dreamer_gw_attrz_simple_shapes_s1").is_dir()
 
 
-def robodesk_batch(B: int = 3, T: int = 12) -> dict[str, torch.Tensor]:
-    torch.manual_seed(1)
-    batch = {
-        "z": torch.rand(B, T + 1, 76) * 2 - 1,
-        "a": torch.rand(B, T + 1, 5) * 2 - 1,
-        "r": torch.rand(B, T + 1) * 4,
-    }
-    batch |= {k: torch.zeros(B, T + 1) for k in ("d", "first", "last")}
-    batch["last"][1, 5], batch["first"][1, 6] = 1.0, 1.0  # an episode ends inside sequence 1
-    return batch
-
-
-def test_open_loop_loss_of_one_step_is_the_papers_loss_and_longer_ones_feed_z_back():
-    """--wm-open-loop: with K = 1 from every entry it is the one-step loss; with K > 1 the later steps read
-    the world model's own z (their loss reaches the z head through it) and stop at an episode's end."""
-    torch.manual_seed(0)
-    agent = G.Agent("robodesk", 76, "twohot", cpu_preset=True)
-    batch = robodesk_batch()
-    args = X.Args(env="robodesk", cpu_preset=True, wm_open_loop=1, wm_open_loop_stride=1)
-    loss, _, h_entry, _ = G.world_model_loss(agent.wm, agent.reward_dec, batch, args)
-    loss_open, terms = X.open_loop_loss(agent.wm, agent.reward_dec, batch, h_entry, args)
-    torch.testing.assert_close(loss_open, loss)
-    # K = 2 from entry 0 only: step 2's z loss reaches the z head's weights through the fed-back z_1
-    args = X.Args(env="robodesk", cpu_preset=True, wm_open_loop=2, wm_open_loop_stride=100)
-    h0 = torch.zeros(3, agent.wm.hidden)
-    z1 = agent.wm.heads(agent.wm.step(h0, batch["z"][:, 0], batch["a"][:, 0]))[0]
-    z2_fed = agent.wm.heads(
-        agent.wm.step(agent.wm.step(h0, batch["z"][:, 0], batch["a"][:, 0]), z1, batch["a"][:, 1])
-    )[0]
-    z2_real = agent.wm.heads(
-        agent.wm.step(
-            agent.wm.step(h0, batch["z"][:, 0], batch["a"][:, 0]), batch["z"][:, 1], batch["a"][:, 1]
-        )
-    )[0]
-    _, terms = X.open_loop_loss(agent.wm, agent.reward_dec, batch, torch.zeros(3, 13, agent.wm.hidden), args)
-    z_loss = (((z1 - batch["z"][:, 1]) ** 2).sum(-1) + ((z2_fed - batch["z"][:, 2]) ** 2).sum(-1)).sum() / 6
-    torch.testing.assert_close(terms["loss_z_open"], z_loss)
-    assert not torch.allclose(z2_fed, z2_real)
-    # a start whose window crosses an episode's end counts only up to that end
-    batch["last"][:, 0] = 1.0
-    _, terms = X.open_loop_loss(agent.wm, agent.reward_dec, batch, torch.zeros(3, 13, agent.wm.hidden), args)
-    assert terms["loss_z_open"] == 0
-
-
 def test_recent_fraction_draws_that_share_of_sequences_from_the_newest_steps():
     """--recent-fraction 0.5 --recent-window 30: half of each batch ends among the 30 newest stored steps of
     its stream (the stored z counts the steps), the other half is the paper's uniform replay; at 0 the
@@ -204,56 +159,16 @@ def test_residual_world_model_predicts_a_change_of_z_and_acts_on_the_gru_state()
     torch.testing.assert_close(dream.feats[0], h_entry[:, -1, :hidden])
 
 
-def test_explore_noise_widens_the_collected_actions_only():
-    """--explore-noise 0.3: the actions taken while collecting spread by sqrt(std^2 + 0.3^2) around the
-    actor's mean; evaluations (gw_dreamer.run_episodes) and the dreams' samples keep the actor's own
-    spread."""
-    torch.manual_seed(0)
-    args = X.Args(env="robodesk", cpu_preset=True, explore_noise=0.3)
-    agent = X.experiment_agent(args)("robodesk", 76, "twohot", cpu_preset=True)
-    with torch.no_grad():  # a policy with mean 0 and std at its 0.1 floor, so nothing is clipped
-        agent.actor.net[-1].weight.zero_()
-        agent.actor.net[-1].bias.copy_(torch.tensor([0.0] * 5 + [-30.0] * 5))
-        h = torch.zeros(20_000, agent.wm.hidden)
-        collected = agent.actor.act(h)
-        dreamt = agent.actor.sample(agent.actor(h))
-    torch.testing.assert_close(
-        collected.std(0), torch.full((5,), (0.1**2 + 0.3**2) ** 0.5), rtol=0.03, atol=0
-    )
-    torch.testing.assert_close(dreamt.std(0), torch.full((5,), 0.1), rtol=0.03, atol=0)
-    seen = []
-
-    def paper_run_episodes(agent_, *a, **kw):
-        seen.append(agent_.actor.act(h).std(0))
-        return "returns"
-
-    assert X.run_episodes_without_noise(paper_run_episodes)(agent, None) == "returns"
-    torch.testing.assert_close(seen[0], torch.full((5,), 0.1), rtol=0.03, atol=0)
-    assert agent.actor.exploring  # collection is noisy again after an evaluation
-    assert X.suffix(args) == "_noise0.3"
-    with pytest.raises(G.UsageError, match="continuous actions"):
-        X.experiment_agent(X.Args(explore_noise=0.3))("simple_shapes", 10, "twohot")
-
-
 def test_explore_noise_decay_falls_to_zero_at_its_frame():
     """--explore-noise 0.3 --explore-noise-decay 1000: the collected actions' extra noise is 0.3 at frame 0,
-    0.15 at frame 500 and none from frame 1,000, read from the run's loop state that start_run hands
-    the actor."""
+    0.15 at frame 500 and none from frame 1,000; the run uses it in place of gw_dreamer.explore."""
     torch.manual_seed(0)
-    args = X.Args(env="robodesk", cpu_preset=True, explore_noise=0.3, explore_noise_decay=1000)
-    agent = X.experiment_agent(args)("robodesk", 76, "twohot", cpu_preset=True)
-    state = G.LoopState()
-    run = X.start_run_with_noise_clock(lambda *a, **kw: SimpleNamespace(state=state))(args, None, agent)
-    assert run.state is state and agent.actor.clock is state
-    with torch.no_grad():
-        agent.actor.net[-1].weight.zero_()
-        agent.actor.net[-1].bias.copy_(torch.tensor([0.0] * 5 + [-30.0] * 5))
-        h = torch.zeros(20_000, agent.wm.hidden)
-        for frame, extra in [(0, 0.3), (500, 0.15), (1000, 0.0), (5000, 0.0)]:
-            state.env_steps = frame
-            want = torch.full((5,), (0.1**2 + extra**2) ** 0.5)
-            torch.testing.assert_close(agent.actor.act(h).std(0), want, rtol=0.03, atol=0)
-    assert X.suffix(args) == "_noise0.3d1000"
+    args = X.Args(env="robodesk", cpu_preset=True, explore_noise=0.3, explore_noise_decay=1000).resolve()
+    a = torch.zeros(20_000, 5)
+    for frame, extra in [(0, 0.3), (500, 0.15), (1000, 0.0), (5000, 0.0)]:
+        got = X.decaying_explore(a, args, frame).std(0)
+        torch.testing.assert_close(got, torch.full((5,), extra), rtol=0.03, atol=1e-6)
+    assert X.suffix(args) == "_ol10_noise0.3d1000"
     with pytest.raises(G.UsageError, match="needs --explore-noise"):
         X.main(X.Args(env="robodesk", explore_noise_decay=1000))
 
@@ -269,3 +184,36 @@ def test_refusal_names_experiment_flags_as_the_cli_takes_them():
     parsed = tyro.cli(X.Args, args=" ".join(words).split())
     assert (parsed.wm_residual, parsed.value_slope, parsed.ac_input) == (True, False, "hz")
     assert G.SCRIPT["experiments"]["wm_residual"] is False
+
+
+def test_the_robodesk_cpu_preset_is_the_experiments_command_that_reached_the_criterion():
+    """gw_dreamer.py --env robodesk --cpu-preset runs the setting recorded as 3 of 3 in
+    docs/results/robodesk_runs.csv (the experiments script with explicit flags): the same settings, and
+    the first three updates from the same weights and replay give the losses and weights that the
+    experiments script gave at commit 4f27b04, where the open-loop loss and the noise were its own."""
+    flags = "--env robodesk --cpu-preset --batch-size 32 --batch-length 64 --critic-replay-coef 0.3"
+    flags += " --wm-open-loop 10 --wm-open-loop-stride 16 --explore-noise 0.3"
+    recorded = vars(tyro.cli(X.Args, args=flags.split()).resolve())
+    args = G.Args(env="robodesk", cpu_preset=True).resolve()
+    assert {k: v for k, v in recorded.items() if k in vars(args)} == vars(args)
+    torch.manual_seed(0)
+    agent = G.Agent("robodesk", 76, "twohot", cpu_preset=True)
+    replay, rng = G.Replay(400, 1, 76, 5, seed=0), np.random.default_rng(0)
+    for t in range(200):
+        z, a = rng.uniform(-1, 1, (1, 76)), rng.uniform(-1, 1, (1, 5))
+        replay.add(np.arange(1), z, a, rng.uniform(0, 3, 1), np.zeros(1), np.zeros(1) + (t == 0), np.zeros(1))
+    replay.rng, opts = np.random.default_rng(1), G.make_optimizers(agent, args)
+    torch.manual_seed(5)
+    keys = ("loss_wm", "loss_z_open", "loss_r_open", "loss_actor", "loss_critic", "loss_critic_replay")
+    got = [
+        [float(logs[k]) for k in keys]
+        for logs in (G.train_update(agent, opts, replay, args) for _ in range(3))
+    ]
+    at_4f27b04 = [
+        [521.738892, 25.459578, 5.540287, -0.000842, 4.450218, 11.105998],
+        [519.166321, 25.363285, 5.530972, -0.001291, 4.451131, 11.085472],
+        [518.383911, 25.329241, 5.523242, -0.001588, 4.453122, 11.06711],
+    ]
+    np.testing.assert_allclose(got, at_4f27b04, rtol=1e-5, atol=2e-6)
+    weight_sum = sum(float(p.detach().abs().sum()) for p in agent.parameters())
+    assert weight_sum == pytest.approx(49691.328125, rel=1e-6)

@@ -26,7 +26,6 @@ from typing import Literal
 import numpy as np
 import torch
 import torch.nn as nn
-import torch.nn.functional as F
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 import gw_dreamer as G  # noqa: E402
@@ -45,16 +44,6 @@ class Args(G.Args):
     with respect to the dream); the critic still learns as before"""
     zero_init: bool = False
     """the reward head's and the critic's output layers start at zero (DreamerV3)"""
-    wm_open_loop: int = 0
-    """K > 0: the world model's loss adds a K-step open-loop term: from every --wm-open-loop-stride-th
-    replayed state h_t, K steps with its own predicted z fed back and the actions that were taken, the same
-    z, reward and done losses against the real z_{t+k}, r and d (averaged over k; gradients through the
-    fed-back z). A dream is open loop for 20 steps, while the paper's loss trains one step from the real z
-    only"""
-    wm_open_loop_stride: int = 8
-    """replayed entries between two starts of the open-loop term (8: 8 starts per sequence of 64)"""
-    wm_open_loop_coef: float = 1.0
-    """weight of the open-loop term against the one-step loss"""
     recent_fraction: float = 0.0
     """a share of each batch's sequences that start among the newest --recent-window stored steps of their
     stream (the rest uniform, as the paper's replay): the world model sees the policy's newest states more
@@ -65,15 +54,10 @@ class Args(G.Args):
     """the z head predicts a change: z_{t+1} = tanh(atanh(z_t) + head(h_{t+1})) instead of the paper's
     tanh(head(h_{t+1})), so a world model that knows nothing of an action predicts that nothing moves
     (same parameters)"""
-    explore_noise: float = 0.0
-    """sigma > 0: Gaussian noise N(0, sigma^2) added to every continuous action the agent takes while
-    collecting training data (clipped to the action box; the replay stores the action taken), as
-    DreamerV1's exploration noise (0.3 there). With the actor's std at its 0.1 floor the replayed actions
-    are nearly a function of the state, so the world model can predict the next z without reading them;
-    noise decorrelates them. Evaluations and dreams use the actor as it is"""
     explore_noise_decay: int = 0
-    """N > 0: the exploration noise falls linearly from --explore-noise at the first frame to 0 at frame N
-    (0: constant), so the training episodes that decide the criterion late in a run are the policy's own"""
+    """N > 0: gw_dreamer.py's --explore-noise falls linearly from its value at the first frame to 0 at
+    frame N (0: constant), so the training episodes that decide the criterion late in a run are the
+    policy's own"""
     z_source: Literal["gw", "attributes"] = "gw"
     """gw: the paper's z_t. attributes (Simple Shapes only): z_t is the true attribute vector (its first
     10 entries, clipped to [-1, 1]) instead of the GW's, which tests the world model and actor-critic
@@ -121,44 +105,6 @@ class RecentReplay(G.Replay):
         return out
 
 
-def open_loop_loss(wm, reward_dec, batch: dict[str, torch.Tensor], h_entry: torch.Tensor, args: Args):
-    """--wm-open-loop K: the world model's losses after k = 1..K steps of dreaming along the replayed
-    actions from the teacher-forced h_t of every stride-th entry t. A start's step k counts while no
-    episode ended in between (no transition out of an episode's final observation)."""
-    K, z, a, last = args.wm_open_loop, batch["z"], batch["a"], batch["last"]
-    r, d = batch["r"] - args.reward_offset, batch["d"]
-    B, T1, _ = z.shape
-    starts = torch.arange(0, T1 - K, args.wm_open_loop_stride, device=z.device)
-    if len(starts) == 0:
-        raise G.UsageError(f"--wm-open-loop {K} needs --batch-length above {K}")
-    h, z_k = h_entry[:, starts].flatten(0, 1), z[:, starts].flatten(0, 1)
-    alive = torch.ones(h.shape[0], device=z.device)
-    loss_z = loss_r = loss_d = n = 0.0
-    for k in range(K):
-        t = starts + k
-        alive = alive * (1 - last[:, t].flatten())
-        h = wm.step(h, z_k, a[:, t].flatten(0, 1))
-        z_k, r_out, d_logit = wm.heads(h)
-        loss_z = loss_z + (((z_k - z[:, t + 1].flatten(0, 1)) ** 2).sum(-1) * alive).sum()
-        loss_r = loss_r + (reward_dec.loss(r_out, r[:, t].flatten()) * alive).sum()
-        bce = F.binary_cross_entropy_with_logits(d_logit, d[:, t].flatten(), reduction="none")
-        loss_d = loss_d + (bce * alive).sum()
-        n = n + alive.sum()
-    n = n.clamp(min=1)
-    loss_z, loss_r, loss_d = loss_z / n, loss_r / n, loss_d / n
-    loss = args.wm_z_coef * loss_z + args.wm_reward_coef * loss_r + args.wm_done_coef * loss_d
-    return loss, {"loss_z_open": loss_z, "loss_r_open": loss_r}
-
-
-def world_model_loss(wm, reward_dec, batch, args):
-    """gw_dreamer.world_model_loss, plus --wm-open-loop's term when asked."""
-    loss, terms, h_entry, valid = G.world_model_loss(wm, reward_dec, batch, args)
-    if args.wm_open_loop:
-        loss_open, terms_open = open_loop_loss(wm, reward_dec, batch, h_entry, args)
-        loss, terms = loss + args.wm_open_loop_coef * loss_open, terms | terms_open
-    return loss, terms, h_entry, valid
-
-
 def experiment_agent(args: Args) -> type[G.Agent]:
     """gw_dreamer.Agent with this run's experiments built in."""
 
@@ -202,11 +148,6 @@ def experiment_agent(args: Args) -> type[G.Agent]:
                 self.wm.hidden = self.wm.gru.hidden_size + z_dim
             if not args.value_slope:
                 self.critic.__class__ = ConstantInputCritic
-            if args.explore_noise:
-                if self.discrete:
-                    raise G.UsageError("--explore-noise is for continuous actions (RoboDesk)")
-                self.actor.__class__ = NoisyActor  # same parameters, noisy act
-                self.actor.sigma, self.actor.decay = args.explore_noise, args.explore_noise_decay
             if args.zero_init:  # DreamerV3: reward and value predictions start at 0
                 for last in (self.wm.reward_head[-1], self.critic.net[-1]):
                     nn.init.zeros_(last.weight)
@@ -220,48 +161,10 @@ def experiment_agent(args: Args) -> type[G.Agent]:
     return ExperimentAgent
 
 
-class NoisyActor(G.Actor):
-    """--explore-noise: ``act`` adds N(0, sigma_t^2) to the sampled action while ``exploring``; ``sample``
-    (the dreams') is the paper's. sigma_t falls linearly to 0 at frame ``decay`` of the run's ``clock``
-    (its loop state, set by start_run) when ``decay`` > 0."""
-
-    sigma, decay, exploring, clock = 0.0, 0, True, None
-
-    def noise_std(self) -> float:
-        if not self.decay:
-            return self.sigma
-        return self.sigma * max(0.0, 1.0 - self.clock.env_steps / self.decay)
-
-    def act(self, h: torch.Tensor, mode: bool = False) -> torch.Tensor:
-        a = super().act(h, mode)
-        if self.exploring and not mode:
-            a = (a + self.noise_std() * torch.randn_like(a)).clamp(-1, 1)
-        return a
-
-
-def start_run_with_noise_clock(paper_start_run):
-    """gw_dreamer.start_run, then the noisy actor reads the run's frame count (restored on --resume)."""
-
-    def start_run(args, encoder, agent, *a, **kw):
-        run = paper_start_run(args, encoder, agent, *a, **kw)
-        if isinstance(agent.actor, NoisyActor):
-            agent.actor.clock = run.state
-        return run
-
-    return start_run
-
-
-def run_episodes_without_noise(paper_run_episodes):
-    """gw_dreamer.run_episodes (evaluations, the ablation) with the actor's exploration noise off."""
-
-    def run_episodes(agent, *a, **kw):
-        agent.actor.exploring = False
-        try:
-            return paper_run_episodes(agent, *a, **kw)
-        finally:
-            agent.actor.exploring = True
-
-    return run_episodes
+def decaying_explore(a: torch.Tensor, args: Args, env_steps: int) -> torch.Tensor:
+    """gw_dreamer.explore with --explore-noise-decay: the noise's std falls linearly to 0 at frame N."""
+    sigma = args.explore_noise * max(0.0, 1.0 - env_steps / args.explore_noise_decay)
+    return (a + sigma * torch.randn_like(a)).clamp(-1, 1)
 
 
 class AttributeEncoder(G.FrozenEncoder):
@@ -278,11 +181,10 @@ class AttributeEncoder(G.FrozenEncoder):
 def main(args: Args) -> dict:
     if args.wm_residual and args.heads_read_sg_z:
         raise G.UsageError("--wm-residual and --heads-read-sg-z are separate experiments; give one")
-    G.require(0 <= args.explore_noise < 10, "explore_noise", args.explore_noise, "must be in [0, 10)")
     G.require(
         args.explore_noise_decay >= 0, "explore_noise_decay", args.explore_noise_decay, "must not be negative"
     )
-    if args.explore_noise_decay and not args.explore_noise:
+    if args.explore_noise_decay and not args.resolve().explore_noise:
         raise G.UsageError("--explore-noise-decay needs --explore-noise")
     if args.z_source == "attributes" and args.env != "simple_shapes":
         raise G.UsageError(
@@ -302,19 +204,16 @@ def main(args: Args) -> dict:
         "Agent": experiment_agent(args),
         "load_frozen": load_frozen,
         "run_name": lambda a, model: paper_run_name(a, model + suffix(a)),
-        "run_episodes": run_episodes_without_noise(G.run_episodes),
-        "start_run": start_run_with_noise_clock(G.start_run),
+        "explore": decaying_explore if args.explore_noise_decay else G.explore,
     }
     saved = {name: getattr(G, name) for name in patches}
     for name, value in patches.items():
         setattr(G, name, value)
-    G.EAGER["wm"] = world_model_loss  # train_update's losses (and --compile's)
     try:
         return G.main(args)
     finally:
         for name, value in saved.items():
             setattr(G, name, value)
-        G.EAGER["wm"] = G.world_model_loss
 
 
 if __name__ == "__main__":
