@@ -277,9 +277,10 @@ TABLE = {
 CPU_PRESET = {"gw_batch_size": 256}
 
 
-# RoboDesk under --cpu-preset: gw_dreamer.py's CPU batch (and its CPU_SIZES networks).
+# RoboDesk under --cpu-preset: gw_dreamer.py's CPU batch (and its CPU_SIZES networks); its other preset
+# departures (replay critic loss, open-loop world-model loss, exploration noise) are not this script's.
 # An evaluation's 10 episodes are 20,000 frames of acting, so the preset evaluates every 100,000.
-CPU_TABLE = {"robodesk": dict(total_steps=200_000, batch_size=16, batch_length=64, eval_every=100_000)}
+CPU_TABLE = {"robodesk": dict(total_steps=200_000, batch_size=32, batch_length=64, eval_every=100_000)}
 TAG = "gw_dreamer_e2e"  # the prefix of every line this script prints
 SIZES = {
     "simple_shapes": {

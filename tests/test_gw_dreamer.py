@@ -517,6 +517,8 @@ def test_robodesk_cpu_preset_is_the_same_networks_smaller_and_the_paper_sizes_st
     assert [getattr(cpu, k) for k in preset] == [0.3, 10, 16, 0.3]
     assert [getattr(paper, k) for k in preset] == [0.0, 0, 16, 0.0]
     assert G.Args(env="robodesk", cpu_preset=True, explore_noise=0.0).resolve().explore_noise == 0.0
+    e2e = E.Args(env="robodesk", cpu_preset=True).resolve()  # the end-to-end variant: the same batch
+    assert (e2e.batch_size, e2e.batch_length, e2e.total_steps) == (cpu.batch_size, cpu.batch_length, 200_000)
     big, small = G.Agent("robodesk", 76, "twohot"), G.Agent("robodesk", 76, "twohot", cpu_preset=True)
     assert (big.wm.hidden, small.wm.hidden) == (1024, 256)
     assert small.actor.net[0].out_features == 256 and big.actor.net[0].out_features == 512
