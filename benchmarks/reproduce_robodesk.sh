@@ -7,8 +7,8 @@
 #   DRY_RUN=1 bash benchmarks/reproduce_robodesk.sh 2     # print the commands only
 #
 # Runs JOBS (default 2) trainings at a time, each with --torch-threads 1. A seed of
-# `gw_dreamer.py --env robodesk --cpu-preset` runs to the criterion or 200,000 frames: at most about
-# 2 h with two side by side on a 2-core AMD EPYC CPU (torch 2.13.0, docs/results/robodesk_runs.csv), then
+# `gw_dreamer.py --env robodesk --cpu-preset` runs to the criterion or 200,000 frames: up to about
+# 3.4 h with two side by side on a 2-core AMD EPYC CPU (torch 2.13.0, docs/results/robodesk_runs.csv), then
 # its modality ablation (10 episodes each with both modalities, without vision, without attributes:
 # about 3 min each).
 #
