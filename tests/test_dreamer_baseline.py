@@ -588,3 +588,23 @@ def test_eval_only_feeds_every_observation_through_the_drop_it_was_given(ss_run,
         seen.clear()
         D.main(small_args(pretrained, eval_only=True, checkpoint=str(agent), drop=drop, eval_episodes=2))
         assert len(seen) >= 100 and set(seen) == {drop}, drop  # 2 episodes of 100 steps
+
+
+def test_robodesk_cpu_preset_and_the_images_of_the_vae(pretrained_robodesk):
+    """--cpu-preset on RoboDesk: the table's 2M model on fast images to 800,000 frames, the paper's 12M on
+    faithful ones by default; --obs vae sees the images its VAE was trained on and refuses the other kind."""
+    paper, cpu = D.Args(env="robodesk").resolve(), D.Args(env="robodesk", cpu_preset=True).resolve()
+    assert (paper.size, paper.deter, paper.total_steps, paper.eval_every) == ("12m", 2048, 1_000_000, 10_000)
+    assert (cpu.size, cpu.deter, cpu.total_steps, cpu.eval_every) == ("2m", 512, 800_000, 100_000)
+    assert (paper.render_quality, cpu.render_quality) == ("faithful", "fast")
+    assert D.Args(env="robodesk", cpu_preset=True, size="12m").resolve().deter == 2048  # explicit flags win
+    ss = D.Args(cpu_preset=True).resolve()
+    assert (ss.size, ss.total_steps, ss.eval_every) == ("2m", 400_000, 10_000)
+    ck = str(pretrained_robodesk[0] / "ck")  # its VAE was trained on fast images
+    args = D.Args(env="robodesk", obs="vae", checkpoint_dir=ck).resolve()
+    assert args.render_quality is None
+    D.load_frozen(args, torch.device("cpu"))
+    assert args.render_quality == "fast"
+    with pytest.raises(D.UsageError, match="trained on fast images"):
+        D.load_frozen(D.Args(env="robodesk", obs="vae", checkpoint_dir=ck, render_quality="faithful"), "cpu")
+    assert "render_quality" in D.EVAL_KEYS  # an agent is evaluated on the images it was trained on
