@@ -127,8 +127,9 @@ class Args:
     """width of the two hidden layers of the actor and the critic (stable-baselines3's default)"""
 
     # environments
-    render_quality: Literal["faithful", "fast"] = "faithful"
-    """RoboDesk image quality (fast: CPU experiments only, docs/environments.md)"""
+    render_quality: Literal["faithful", "fast"] | None = None
+    """RoboDesk image quality; default: for vae / clip / gw that of the images their VAE was trained on
+    (another one is refused), for raw faithful (fast: CPU experiments, docs/environments.md)"""
     episode_length: int = 2000
     """RoboDesk episode length in physics-control repeats (paper: 2000, i.e. 500 agent steps)"""
 
@@ -158,9 +159,11 @@ class Args:
     """modality removed at evaluation: clip/gw set alpha to (0, 1) / (1, 0), raw/vae zero the input"""
 
     def resolve(self) -> Args:
-        """The per-environment default of --criterion."""
+        """The per-environment default of --criterion (and of the images, where no VAE decides them)."""
         if self.criterion is None:
             self.criterion = 0.75 if self.env == "simple_shapes" else 0.70
+        if self.render_quality is None and (self.variant == "raw" or self.env == "simple_shapes"):
+            self.render_quality = "faithful"
         return self
 
 
@@ -695,6 +698,15 @@ def load_observer(args: Args) -> tuple[Observer, dict]:
     stages = "collect vae" if args.variant == "vae" else "collect vae gw"
     extra = " --loss-preset clip" if args.variant == "clip" else ""
     vae = load_pretrained(vae_path, "vae", args.env, stages, args.checkpoint_dir, extra)
+    made_on = vae.get("args", {}).get("render_quality", "faithful")  # the images the VAE was trained on
+    if args.render_quality is None:
+        args.render_quality = made_on
+    elif args.env == "robodesk" and args.render_quality != made_on:
+        raise UsageError(
+            f"--render-quality {args.render_quality}: the VAE in {vae_path} was trained on {made_on} images, "
+            "and its encoders have never seen the other kind; leave the flag out, or pre-train a VAE on "
+            f"{args.render_quality} images"
+        )
     gw, paths = None, [str(vae_path)]
     if args.variant in ("clip", "gw"):
         gw_path = pre[f"{args.variant}.pt"]
@@ -749,7 +761,7 @@ MAY_CHANGE = set(
 
 
 # Settings an evaluation must share with the agent it loads (they shape its networks or inputs).
-EVAL_KEYS = ("task", "variant", "frame_stack", "hidden")
+EVAL_KEYS = ("task", "variant", "frame_stack", "hidden", "render_quality")
 
 
 # What the run infrastructure below the fence reads of this script.

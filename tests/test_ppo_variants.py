@@ -232,3 +232,20 @@ def test_eval_only_feeds_every_observation_through_the_drop_it_was_given(ss_runs
         args.eval_episodes = 2
         PPO.main(args)
         assert len(seen) >= 100 and set(seen) == {drop}, drop  # 2 episodes of 100 steps
+
+
+def test_the_frozen_variants_see_the_images_of_their_vae(pretrained_robodesk):
+    """On RoboDesk, vae / clip / gw render the images their VAE was trained on (fast here) and refuse the
+    other kind; raw renders faithful ones unless told otherwise."""
+    ck = str(pretrained_robodesk[0] / "ck")
+    for variant in ("vae", "gw"):
+        args = PPO.Args(env="robodesk", variant=variant, checkpoint_dir=ck).resolve()
+        assert args.render_quality is None
+        PPO.load_observer(args)
+        assert args.render_quality == "fast"
+        with pytest.raises(PPO.UsageError, match="trained on fast images"):
+            PPO.load_observer(
+                PPO.Args(env="robodesk", variant=variant, checkpoint_dir=ck, render_quality="faithful")
+            )
+    assert PPO.Args(env="robodesk", variant="raw").resolve().render_quality == "faithful"
+    assert "render_quality" in PPO.EVAL_KEYS
