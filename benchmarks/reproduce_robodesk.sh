@@ -5,12 +5,17 @@
 #   bash benchmarks/reproduce_robodesk.sh 3               # N = 3 seeds (default 3) on the bundled GW
 #   PRETRAIN=1 bash benchmarks/reproduce_robodesk.sh 3    # first make the VAEs + GW anew (about 70 min)
 #   DRY_RUN=1 bash benchmarks/reproduce_robodesk.sh 2     # print the commands only
+#   MODELS="gw e2e dreamer vae_dreamer" bash benchmarks/reproduce_robodesk.sh 2   # the baselines too
 #
 # Runs JOBS (default 2) trainings at a time, each with --torch-threads 1. A seed of
 # `gw_dreamer.py --env robodesk --cpu-preset` runs to the criterion or 200,000 frames: up to about
 # 3.4 h with two side by side on a 2-core AMD EPYC CPU (torch 2.13.0, docs/results/robodesk_runs.csv), then
 # its modality ablation (10 episodes each with both modalities, without vision, without attributes:
 # about 3 min each).
+#
+# MODELS (default "gw") picks the agents, each at its --cpu-preset: gw (gw_dreamer.py), e2e
+# (gw_dreamer_e2e.py), dreamer and vae_dreamer (dreamer_baseline.py --obs raw / vae: the 2M model, to
+# 800,000 frames, several times GW-Dreamer's time).
 #
 # Everything goes to $OUT (default: reproduced_robodesk/): checkpoints/, runs/ (TensorBoard), logs/,
 # results/ (the CSV records) and figures/. Nothing outside it is written, and an existing $OUT is refused.
@@ -21,6 +26,7 @@ JOBS=${JOBS:-2}
 OUT=${OUT:-reproduced_robodesk}
 DRY_RUN=${DRY_RUN:-0}
 PRETRAIN=${PRETRAIN:-0}
+MODELS=${MODELS:-gw}
 REPO="$(cd "$(dirname "$0")/.." && pwd)"
 export MUJOCO_GL=${MUJOCO_GL:-egl}
 # $OUT refused if it exists, and step (run a command inside $OUT, its output in logs/<name>.log).
@@ -34,26 +40,34 @@ if [ "$PRETRAIN" = 1 ]; then
 fi
 
 # 2. The agents, JOBS at a time: train to the criterion or 200,000 frames, then the modality ablation.
-agent() {  # seed
-  local s=$1 name="gw_dreamer_robodesk_push_green_s$1"
+agent() {  # model seed
+  local m=$1 s=$2 script run
   local common="--env robodesk --task push_green --cpu-preset --seed $s --checkpoint-dir checkpoints --torch-threads 1"
+  case $m in
+    gw) script=gw_dreamer.py run=gw_dreamer_gw ;;
+    e2e) script=gw_dreamer_e2e.py run=gw_dreamer_e2e_gw ;;
+    dreamer) script=dreamer_baseline.py run=dreamer_raw_2m common="$common --obs raw" ;;
+    vae_dreamer) script=dreamer_baseline.py run=dreamer_vae_2m common="$common --obs vae" ;;
+    *) echo "unknown model $m in MODELS (gw, e2e, dreamer, vae_dreamer)" >&2; return 2 ;;
+  esac
+  local name="${run}_robodesk_push_green_s$s"
   # shellcheck disable=SC2086  # flags are words
-  step "$name" python "$REPO/gw_dreamer.py" $common --stop-at-criterion
+  step "$name" python "$REPO/$script" $common --stop-at-criterion
   for drop in none vision attr; do
     # shellcheck disable=SC2086
-    step "${name}_drop_$drop" python "$REPO/gw_dreamer.py" $common --eval-only --drop $drop --eval-episodes 10
+    step "${name}_drop_$drop" python "$REPO/$script" $common --eval-only --drop $drop --eval-episodes 10
     if [ "$DRY_RUN" != 1 ]; then
-      grep "\[eval\]" "$OUT/logs/${name}_drop_$drop.log" \
-        > "$OUT/runs/gw_dreamer_gw_robodesk_push_green_s$s/eval_drop_$drop.txt" || true
+      grep "\[eval\]" "$OUT/logs/${name}_drop_$drop.log" > "$OUT/runs/$name/eval_drop_$drop.txt" || true
     fi
   done
 }
 export -f step agent
 export OUT REPO DRY_RUN
+jobs_list() { for m in $MODELS; do for s in $(seq 1 "$N"); do echo "$m $s"; done; done; }
 if [ "$DRY_RUN" = 1 ]; then
-  for s in $(seq 1 "$N"); do agent "$s"; done
+  jobs_list | while read -r m s; do agent "$m" "$s"; done
 else
-  seq 1 "$N" | xargs -P "$JOBS" -I{} bash -c 'agent "$1"' _ {}
+  jobs_list | xargs -P "$JOBS" -L 1 bash -c 'agent "$1" "$2"' _
 fi
 
 # 3. The figures and the records they are drawn from.

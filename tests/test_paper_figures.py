@@ -165,3 +165,25 @@ def test_the_robodesk_reproduction_script_runs_valid_commands_only(tmp_path):
         assert args.env == "robodesk"
         assert getattr(args, "cpu_preset", True)
     assert list(tmp_path.iterdir()) == []
+    # MODELS adds the baselines, each at its --cpu-preset (the Dreamers: 2M on fast images)
+    env |= {"MODELS": "gw e2e dreamer vae_dreamer", "PRETRAIN": "0"}
+    out = subprocess.run(["bash", str(script), "1"], cwd=tmp_path, capture_output=True, text=True, env=env)
+    assert out.returncode == 0, out.stderr
+    commands = [shlex.split(line) for line in out.stdout.splitlines()]
+    scripts = [Path(c[1]).name for c in commands]
+    assert scripts == [
+        *["gw_dreamer.py"] * 4,
+        *["gw_dreamer_e2e.py"] * 4,
+        *["dreamer_baseline.py"] * 8,
+        scripts[-1],
+    ]
+    D = importlib.import_module("dreamer_baseline")
+    dreamers = [
+        tyro.cli(D.Args, args=c[2:]).resolve() for c in commands if c[1].endswith("dreamer_baseline.py")
+    ]
+    assert [a.obs for a in dreamers] == ["raw"] * 4 + ["vae"] * 4
+    assert {(a.size, a.cpu_preset, a.total_steps) for a in dreamers} == {("2m", True, 800_000)}
+    bad = subprocess.run(
+        ["bash", str(script), "1"], cwd=tmp_path, capture_output=True, text=True, env=env | {"MODELS": "ppo"}
+    )
+    assert bad.returncode != 0 and "unknown model ppo" in bad.stderr
