@@ -628,7 +628,12 @@ def world_model_loss(wm, reward_dec, batch: dict[str, torch.Tensor], args: Args)
     loss_r = (reward_dec.loss(r_out, r[:, :-1]) * valid).sum() / n
     loss_d = (F.binary_cross_entropy_with_logits(d_logit, d[:, :-1], reduction="none") * valid).sum() / n
     loss = args.wm_z_coef * loss_z + args.wm_reward_coef * loss_r + args.wm_done_coef * loss_d
-    terms = {"loss_z": loss_z, "loss_r": loss_r, "loss_d": loss_d}
+    return loss, {"loss_z": loss_z, "loss_r": loss_r, "loss_d": loss_d}, h_entry, valid
+
+
+def world_model_loss_open_loop(wm, reward_dec, batch: dict[str, torch.Tensor], args: Args):
+    """L_WM as the update computes it: world_model_loss, plus open_loop_loss under --wm-open-loop."""
+    loss, terms, h_entry, valid = world_model_loss(wm, reward_dec, batch, args)
     if args.wm_open_loop:
         loss_open, terms_open = open_loop_loss(wm, reward_dec, batch, h_entry, args)
         loss, terms = loss + loss_open, terms | terms_open
@@ -809,7 +814,7 @@ def dream_loss(agent: Agent, h0: torch.Tensor, z0: torch.Tensor, start_w: torch.
     )
 
 
-EAGER = {"wm": world_model_loss, "ac": dream_loss}  # the two loss computations of an update
+EAGER = {"wm": world_model_loss_open_loop, "ac": dream_loss}  # the two loss computations of an update
 
 
 def compiled_losses(device, backend: str = "inductor") -> dict:

@@ -1106,7 +1106,9 @@ def test_open_loop_loss_of_one_step_is_the_papers_loss_and_longer_ones_feed_z_ba
     loss, _, h_entry, _ = G.world_model_loss(agent.wm, agent.reward_dec, batch, one_step)
     loss_open, terms = G.open_loop_loss(agent.wm, agent.reward_dec, batch, h_entry, args)
     torch.testing.assert_close(loss_open, loss)
-    both, terms_both, _, _ = G.world_model_loss(agent.wm, agent.reward_dec, batch, args)  # L_WM adds it
+    both, terms_both, _, _ = G.world_model_loss_open_loop(
+        agent.wm, agent.reward_dec, batch, args
+    )  # the update's
     torch.testing.assert_close(both, loss + loss_open)
     assert "loss_z_open" in terms_both
     # K = 2 from entry 0 only: step 2's z loss reaches the z head's weights through the fed-back z_1
@@ -1149,9 +1151,10 @@ def test_explore_noise_widens_the_collected_actions_only(pretrained_robodesk, mo
     taken, real = [], G.explore
     monkeypatch.setattr(G, "explore", lambda a, args, step: taken.append(real(a, args, step)) or taken[-1])
     run = dict(env="robodesk", explore_noise=0.3, total_steps=240, learning_starts=200, episode_length=400)
+    run |= dict(exp_name="noise")  # apart from the other tests' runs on the same checkpoints
     G.main(tiny_agent_args(G, pretrained_robodesk, **run, eval_episodes=1, eval_every=10**6, video_every=0))
     assert len(taken) == (240 - 200) // 4
-    path = pretrained_robodesk[0] / "ck" / "robodesk" / "agents" / "gw_dreamer_gw_robodesk_push_green_s1.pt"
+    path = pretrained_robodesk[0] / "ck" / "robodesk" / "agents" / "noise_gw_robodesk_push_green_s1.pt"
     stored = torch.load(path, weights_only=False)["replay"]["a"][0, 50:60]
     np.testing.assert_array_equal(stored, torch.cat(taken).numpy())
     with pytest.raises(G.UsageError, match="continuous actions"):

@@ -105,7 +105,7 @@ def train(agent, replay: G.Replay, args, updates: int) -> float:
     start = time.perf_counter()
     for _ in range(updates):
         batch = {k: torch.as_tensor(v) for k, v in replay.sample(args.batch_size, args.batch_length).items()}
-        loss, *_ = G.world_model_loss(agent.wm, agent.reward_dec, batch, args)
+        loss, *_ = G.world_model_loss_open_loop(agent.wm, agent.reward_dec, batch, args)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         torch.nn.utils.clip_grad_norm_(agent.wm.parameters(), 1000.0)
