@@ -9,14 +9,18 @@ Writes to --out (docs/figures/), <env> being simple_shapes or robodesk:
   over seeds, on log-scaled env steps, with the criterion line (the paper's Figure 3);
 - <env>_ablation.png: normalised return with both modalities, without vision, without
   attributes, mean ± s.e.m. over agents (Figure 5);
-- <env>_flops.md: env steps and RL training FLOPs to the criterion per model (the FLOPs table);
+- <env>_flops.md: env steps and RL training FLOPs to the criterion per model; on RoboDesk also the
+  paper's FLOPs table (VAE, GW, RL on push_green, on the tasks the GW saw, on the tasks it did not);
+- robodesk_tasks_seen.png, robodesk_tasks_unseen.png: one panel per task (Figures 6 and 7), drawn when
+  the records hold runs on those tasks;
 - gw_figure2.png (Simple Shapes): the GW grid of Figure 2 (image, image of the attributes, translation,
   demi-cycle, fusion) from a Simple Shapes GW checkpoint (the bundled one by default).
 
 Runs are recognised by the default run names of the agent scripts (runs/<name>_s<seed>, e.g.
 gw_dreamer_gw_simple_shapes_s3, gw_dreamer_gw_robodesk_push_green_s1); a run's modality ablation is read
 from runs/<run>/eval_drop_<drop>.txt, the `[eval]` line of `--eval-only --drop <drop>`
-(benchmarks/reproduce_simple_shapes.sh writes them). RoboDesk records carry the task of each run.
+(benchmarks/reproduce_simple_shapes.sh writes them). RoboDesk records carry the task of each run:
+Figures 3 and 5 are push_green's, and the tasks the GW saw are those of its data record.
 """
 
 import csv
@@ -35,6 +39,8 @@ sys.path.insert(0, str(ROOT))
 
 # smoothed normalised return at the criterion: Simple Shapes 0.75, RoboDesk the paper's 70%
 CRITERION = {"simple_shapes": 0.75, "robodesk": 0.70}
+# RoboDesk's single task of Figures 3 and 5 and of the FLOPs table's "RL 1 task" column
+MAIN_TASK = {"simple_shapes": "", "robodesk": "push_green"}
 TITLE = {"simple_shapes": "Simple Shapes", "robodesk": "RoboDesk"}
 SMOOTH = 10  # episodes
 # label, the run name's model part (before _<env>), the paper's steps to the criterion (Figure 3, read off
@@ -97,6 +103,8 @@ class Args:
     """VAEs of that GW"""
     caption: str = ""
     """hardware, torch version and date printed under every figure (default: torch version only)"""
+    pretrained: str = "envs/pretrained/robodesk"
+    """RoboDesk VAEs and GW of the agents: the FLOPs table's VAE and GW columns and the tasks they saw"""
 
 
 # --------------------------------------------------------------------------------------------------
@@ -241,15 +249,108 @@ def flops_table(runs: list[dict], setting: str, env: str = "simple_shapes") -> s
     return "\n".join(lines) + "\n"
 
 
+# What each model pre-trains before RL (the FLOPs table's VAE and GW columns): the bundled VAEs, the
+# bundled GW, or a GW of its own (CLIP-like, not bundled); models absent here have neither (N/A).
+PRETRAINS = {
+    "GW-Dreamer": ("VAE", "GW"),
+    "GW-Dreamer end-to-end": ("VAE",),  # its GW trains during RL: counted in the RL column
+    "CLIP-Dreamer": ("VAE", "CLIP"),
+    "VAE-Dreamer": ("VAE",),
+    "GW-PPO": ("VAE", "GW"),
+    "VAE-PPO": ("VAE",),
+    "CLIP-PPO": ("VAE", "CLIP"),
+}
+
+
+def gw_tasks(folder: Path) -> list[str]:
+    """The tasks of the expert data the GW in ``folder`` was trained on (its data record)."""
+    ck = torch.load(folder / "gw.pt", map_location="cpu", weights_only=False)
+    sources = ck["data"]["samples_per_source_and_task"]
+    return sorted(k.split("/", 1)[1] for k in sources if k.startswith("expert/"))
+
+
+def pretraining_flops(folder: Path) -> dict[str, float]:
+    """Training FLOPs (forward and backward) of the VAEs and the GW in ``folder`` until those checkpoints:
+    each stage's update FLOPs per sample, counted at the checkpoints' widths, times the samples of their
+    recipe (steps x batch; the attribute VAE's extra updates per step), the GW's plus the one pass that
+    encodes its data through the frozen VAEs."""
+    from pretrain_throughput import stage_steps
+    from torch.utils.flop_counter import FlopCounterMode
+
+    import pretrain_vae_gw as P
+
+    vae_ck, gw_ck = (
+        torch.load(folder / f, map_location="cpu", weights_only=False) for f in ("vae.pt", "gw.pt")
+    )
+    va, ga = vae_ck["args"], gw_ck["args"]
+    per_sample = {}
+    for name, (update, batch) in stage_steps("robodesk", 2, 2, va["vae_width"], "cpu").items():
+        with FlopCounterMode(display=False) as counter:
+            update()
+        per_sample[name] = counter.get_total_flops() / batch
+    vae_v, vae_attr = P.make_vaes("robodesk", va["vae_width"])
+    spec = P.ENV_SPECS["robodesk"]
+    with torch.no_grad(), FlopCounterMode(display=False) as counter:
+        vae_v.encode(torch.zeros(1, 3, spec["image"], spec["image"]))
+        vae_attr.encode(torch.zeros(1, spec["attr"]))
+    vae = (per_sample["visual VAE"] + va["attr_updates_per_step"] * per_sample["attribute VAE"]) * (
+        va["vae_batch_size"] * va["vae_steps"]
+    )
+    gw = per_sample["GW"] * ga["gw_batch_size"] * ga["gw_steps"]
+    return {"VAE": vae, "GW": gw + counter.get_total_flops() * gw_ck["data"]["n_samples"]}
+
+
+def rl_flops_cell(runs: list[dict], label: str, setting: str, tasks: list[str], single: bool) -> str:
+    """RL training FLOPs to the criterion of ``label`` on ``tasks``: per task the mean over its reached
+    seeds, summed over the tasks (the paper's sum until each task's convergence); X if never run."""
+    mine = [r for r in runs if r["model"] == label and r["setting"] == setting and r["status"] != "cut"]
+    ran = [t for t in tasks if any(r["task"] == t for r in mine)]
+    if not ran:
+        return "X"
+    total, reached = 0.0, []
+    for t in ran:
+        hit = [float(r["rl_train_flops"]) for r in mine if r["task"] == t and r["status"] == "reached"]
+        if hit := [f for f in hit if f]:
+            total, reached = total + float(np.mean(hit)), [*reached, t]
+    if single:
+        n_hit = sum(1 for r in mine if r["task"] == ran[0] and r["status"] == "reached")
+        n_run = sum(1 for r in mine if r["task"] == ran[0])
+        return f"{total:.3e} ({n_hit} / {n_run} seeds)" if reached else f"not reached (0 / {n_run} seeds)"
+    missed = [t for t in ran if t not in reached]
+    head = f"{total:.3e}" if reached else "not reached"
+    return (
+        f"{head} ({len(reached)} of {len(tasks)} tasks reached: {', '.join(reached) or 'none'}"
+        + (f"; not reached: {', '.join(missed)}" if missed else "")
+        + ")"
+    )
+
+
+def robodesk_flops_table(runs: list[dict], setting: str, pre: dict[str, float], seen: list[str]) -> str:
+    """The paper's FLOPs table: VAE and GW pre-training, RL to the criterion on push_green, summed over
+    the tasks the GW saw and over those it did not (every task of the records not in its data)."""
+    unseen = sorted({r["task"] for r in runs} - set(seen))
+    lines = [
+        f"| model | VAE | GW | RL 1 task ({MAIN_TASK['robodesk']}) | RL {len(seen)} tasks the GW saw"
+        f" | RL tasks it did not see ({', '.join(unseen) or 'none run'}) |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for label, _, _ in models("robodesk"):
+        if not any(r["model"] == label and r["setting"] == setting for r in runs):
+            continue
+        uses = PRETRAINS.get(label, ())
+        vae = f"{pre['VAE']:.3e}" if "VAE" in uses else "N/A"
+        gw = f"{pre['GW']:.3e}" if "GW" in uses else "own, not counted" if "CLIP" in uses else "N/A"
+        cells = [rl_flops_cell(runs, label, setting, [MAIN_TASK["robodesk"]], True)]
+        cells += [rl_flops_cell(runs, label, setting, ts, False) for ts in (seen, unseen)]
+        lines.append(f"| {label} | {vae} | {gw} | {' | '.join(cells)} |")
+    return "\n".join(lines) + "\n"
+
+
 # --------------------------------------------------------------------------------------------------
 # Figures
 # --------------------------------------------------------------------------------------------------
-def plot_curves(
-    curves: list[dict], runs: list[dict], setting: str, path: Path, caption: str, env: str = "simple_shapes"
-) -> list[str]:
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7.5, 4.5))
+def draw_curves(ax, curves: list[dict], runs: list[dict], setting: str, env: str) -> list[str]:
+    """Each model's smoothed normalised return on ``ax``, mean ± s.e.m. over its finished seeds."""
     drawn = []
     for label, _, _ in models(env):
         mine = [r for r in runs if r["model"] == label and r["setting"] == setting]
@@ -281,6 +382,16 @@ def plot_curves(
     ax.axhline(CRITERION[env], color="k", ls="--", lw=1, label=f"criterion ({CRITERION[env]})")
     ax.set_xscale("log")
     ax.set_xlabel("env steps" if env == "simple_shapes" else "env steps (simulator frames)")
+    return drawn
+
+
+def plot_curves(
+    curves: list[dict], runs: list[dict], setting: str, path: Path, caption: str, env: str = "simple_shapes"
+) -> list[str]:
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7.5, 4.5))
+    drawn = draw_curves(ax, curves, runs, setting, env)
     ax.set_ylabel("normalised return (smoothed over 10 episodes)")
     tasks = sorted({r.get("task", "") for r in runs if r["setting"] == setting} - {""})
     ax.set_title(f"{TITLE[env]}{' ' + ', '.join(tasks) if tasks else ''}: mean ± s.e.m. over seeds")
@@ -290,6 +401,35 @@ def plot_curves(
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return drawn
+
+
+def plot_tasks(
+    curves: list[dict], runs: list[dict], setting: str, tasks: list[str], title: str, path: Path, caption: str
+) -> list[str]:
+    """RoboDesk, one panel per task of ``tasks`` that has runs (Figures 6 and 7); the tasks drawn."""
+    import matplotlib.pyplot as plt
+
+    tasks = [t for t in tasks if any(r["task"] == t and r["setting"] == setting for r in runs)]
+    if not tasks:
+        return []
+    cols = min(3, len(tasks))
+    rows = math.ceil(len(tasks) / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.4 * rows), squeeze=False)
+    for ax, task in zip(axes.flat, tasks, strict=False):
+        of_task = [r for r in runs if r["task"] == task]
+        draw_curves(ax, [r for r in curves if r["task"] == task], of_task, setting, "robodesk")
+        ax.set_title(task, fontsize=9)
+        ax.xaxis.set_minor_formatter(plt.NullFormatter())  # narrow panels: label the decades only
+        ax.set_ylabel("normalised return")
+        ax.legend(fontsize=6, loc="lower right")
+    for ax in list(axes.flat)[len(tasks) :]:
+        ax.axis("off")
+    fig.suptitle(f"RoboDesk, {title}\nsmoothed over 10 episodes, mean ± s.e.m. over seeds", fontsize=9)
+    fig.text(0.01, 0.01, caption, fontsize=7)
+    fig.tight_layout(rect=(0, 0.03, 1, 1))
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return tasks
 
 
 def plot_ablation(
@@ -402,9 +542,30 @@ def main(args: Args) -> dict:
         for k, rows in {"runs": runs, "curves": curves, "ablation": ablation}.items():
             write_csv(Path(args.export) / f"{env}_{k}.csv", rows, fields(k, env))
     caption = args.caption or f"torch {torch.__version__}"
-    drawn = plot_curves(curves, runs, args.setting, out / f"{env}_curves.png", caption, env)
-    bars = plot_ablation(ablation, args.setting, out / f"{env}_ablation.png", caption, env)
-    table = flops_table(runs, args.setting, env)
+    task = MAIN_TASK[env]  # Figures 3 and 5 and the first table are one task's (RoboDesk: push_green)
+    one = [[r for r in rows if r.get("task", "") == task] for rows in (runs, curves, ablation)]
+    drawn = plot_curves(one[1], one[0], args.setting, out / f"{env}_curves.png", caption, env)
+    bars = plot_ablation(one[2], args.setting, out / f"{env}_ablation.png", caption, env)
+    table = flops_table(one[0], args.setting, env)
+    tasks_drawn = []
+    if env == "robodesk":
+        pretrained = Path(args.pretrained)
+        if not pretrained.is_absolute() and not pretrained.exists():
+            pretrained = ROOT / pretrained
+        seen = gw_tasks(pretrained)
+        unseen = sorted({r["task"] for r in runs} - set(seen))
+        for name, tasks, title in (
+            ("seen", seen, "tasks the GW saw"),
+            ("unseen", unseen, "tasks it did not"),
+        ):
+            png = out / f"robodesk_tasks_{name}.png"
+            tasks_drawn += plot_tasks(curves, runs, args.setting, tasks, title, png, caption)
+        paper = robodesk_flops_table(runs, args.setting, pretraining_flops(pretrained), seen)
+        table += (
+            f"\nThe paper's layout: training FLOPs of the VAEs and the GW ({shown(str(pretrained))}, until"
+            " their checkpoints) and RL training FLOPs to the criterion, the mean over reached seeds summed"
+            " over tasks.\n\n" + paper
+        )
     (out / f"{env}_flops.md").write_text(
         f"# {TITLE[env]}: env steps and RL training FLOPs to the return criterion\n\n"
         f"Drawn by `benchmarks/paper_figures.py` from {shown(args.runs or args.results)} ({caption}).\n\n"
@@ -414,9 +575,11 @@ def main(args: Args) -> dict:
         figure2(Path(args.gw_checkpoint), Path(args.vae_checkpoint), out / "gw_figure2.png", caption)
     print(table)
     print(
-        f"[figures] curves of {', '.join(drawn)}; ablation of {', '.join(bars) or 'none'}; written to {out}/"
+        f"[figures] curves of {', '.join(drawn)}; ablation of {', '.join(bars) or 'none'}"
+        + (f"; task panels of {', '.join(tasks_drawn)}" if env == "robodesk" else "")
+        + f"; written to {out}/"
     )
-    return {"curves": drawn, "ablation": bars, "table": table}
+    return {"curves": drawn, "ablation": bars, "table": table, "tasks": tasks_drawn}
 
 
 if __name__ == "__main__":

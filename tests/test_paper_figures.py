@@ -8,6 +8,8 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
+import torch
 import tyro
 from conftest import ROOT, run_script
 from torch.utils.tensorboard import SummaryWriter
@@ -119,6 +121,71 @@ def test_robodesk_figures_carry_the_task_and_the_70_percent_criterion(tmp_path):
         "benchmarks/paper_figures.py", tmp_path, "--env", "robodesk", "--results", str(res), "--out", str(out)
     )
     assert "| GW-Dreamer | 1 / 2 | 30,000 | 3.00e+13 | ≈ 200,000 |" in again
+
+
+def test_robodesk_tasks_the_gw_saw_and_did_not_and_the_papers_flops_table(tmp_path):
+    runs = tmp_path / "runs"
+    push = "gw_dreamer_gw_robodesk_push_green"
+    fake_run(runs, f"{push}_s1", [0.1] * 15 + [0.8] * 15, 2000, 30000, 60000)  # 3e13 FLOPs to it
+    fake_run(runs, f"{push}_s2", [0.3] * 30, 2000, None, 60000)
+    fake_run(runs, "gw_dreamer_gw_robodesk_open_slide_s1", [0.9] * 30, 2000, 40000, 60000)  # seen: 4e13
+    fake_run(runs, "gw_dreamer_gw_robodesk_push_red_s1", [0.2] * 30, 2000, None, 60000)  # unseen, missed
+    fake_run(runs, "dreamer_raw_2m_robodesk_push_green_s1", [0.9] * 60, 2000, 100000, 120000)
+    out = tmp_path / "fig"
+    printed = run_script(
+        "benchmarks/paper_figures.py", tmp_path, "--env", "robodesk", "--runs", str(runs), "--out", str(out)
+    )
+    # Figure 3's table is push_green's alone: the other tasks' runs do not enter it
+    assert "| GW-Dreamer | 1 / 2 | 30,000 | 3.00e+13 | ≈ 200,000 |" in printed
+    assert "| Dreamer | 1 / 1 | 100,000 | 1.00e+14 | ≈ 800,000 |" in printed
+    for png in ("robodesk_tasks_seen.png", "robodesk_tasks_unseen.png"):
+        assert (out / png).read_bytes().startswith(PNG), png
+    assert "task panels of open_slide, push_green, push_red;" in printed
+    pre = PF.pretraining_flops(ROOT / "envs/pretrained/robodesk")
+    assert PF.gw_tasks(ROOT / "envs/pretrained/robodesk") == [
+        "flat_block_in_bin",
+        "open_drawer",
+        "open_slide",
+        "push_green",
+        "upright_block_off_table",
+    ]
+    assert (
+        "| RL 1 task (push_green) | RL 5 tasks the GW saw | RL tasks it did not see (push_red) |" in printed
+    )
+    assert (
+        f"| GW-Dreamer | {pre['VAE']:.3e} | {pre['GW']:.3e} | 3.000e+13 (1 / 2 seeds)"
+        " | 7.000e+13 (2 of 5 tasks reached: open_slide, push_green)"
+        " | not reached (0 of 1 tasks reached: none; not reached: push_red) |"
+    ) in printed
+    assert (
+        "| Dreamer | N/A | N/A | 1.000e+14 (1 / 1 seeds) | 1.000e+14 (1 of 5 tasks reached: push_green) | X |"
+        in (printed)
+    )
+
+
+def test_pretraining_flops_follow_the_recipe_of_the_checkpoints(tmp_path):
+    bundle = ROOT / "envs/pretrained/robodesk"
+    vae, gw = (torch.load(bundle / f, map_location="cpu", weights_only=False) for f in ("vae.pt", "gw.pt"))
+    base = PF.pretraining_flops(bundle)
+
+    def with_recipe(vae_args=None, gw_args=None, n_samples=None) -> dict:
+        folder = tmp_path / str(len(list(tmp_path.iterdir())))
+        folder.mkdir()
+        torch.save(vae | {"args": vae["args"] | (vae_args or {})}, folder / "vae.pt")
+        data = gw["data"] | ({"n_samples": n_samples} if n_samples else {})
+        torch.save(gw | {"args": gw["args"] | (gw_args or {}), "data": data}, folder / "gw.pt")
+        return PF.pretraining_flops(folder)
+
+    twice = with_recipe(vae_args={"vae_steps": 2 * vae["args"]["vae_steps"]})
+    assert twice["VAE"] == 2 * base["VAE"] and twice["GW"] == base["GW"]
+    no_gw_steps = with_recipe(gw_args={"gw_steps": 0})
+    encode = no_gw_steps["GW"]  # what is left: encoding the GW's data through the frozen VAEs, once
+    assert 0 < encode < base["GW"] and no_gw_steps["VAE"] == base["VAE"]
+    assert with_recipe(gw_args={"gw_steps": 0}, n_samples=2 * gw["data"]["n_samples"])["GW"] == 2 * encode
+    more_gw = with_recipe(gw_args={"gw_batch_size": 2 * gw["args"]["gw_batch_size"]})["GW"]
+    assert more_gw - encode == pytest.approx(2 * (base["GW"] - encode))
+    # a wider visual VAE costs more per sample
+    assert with_recipe(vae_args={"vae_width": 2 * vae["args"]["vae_width"]})["VAE"] > 2 * base["VAE"]
 
 
 def test_the_smoothing_is_the_criterions(tmp_path):
