@@ -6,6 +6,8 @@
 #   PRETRAIN=1 bash benchmarks/reproduce_robodesk.sh 3    # first make the VAEs + GW anew (about 70 min)
 #   DRY_RUN=1 bash benchmarks/reproduce_robodesk.sh 2     # print the commands only
 #   MODELS="gw e2e dreamer vae_dreamer" bash benchmarks/reproduce_robodesk.sh 2   # the baselines too
+#   TASKS="push_red push_blue open_slide open_drawer" bash benchmarks/reproduce_robodesk.sh 2   # Figures 6, 7
+#   MODELS="gw_ppo ppo" bash benchmarks/reproduce_robodesk.sh 1   # PPO, to 1,000,000 frames
 #
 # Runs JOBS (default 2) trainings at a time, each with --torch-threads 1. A seed of
 # `gw_dreamer.py --env robodesk --cpu-preset` runs to the criterion or 200,000 frames: up to about
@@ -15,7 +17,10 @@
 #
 # MODELS (default "gw") picks the agents, each at its --cpu-preset: gw (gw_dreamer.py), e2e
 # (gw_dreamer_e2e.py), dreamer and vae_dreamer (dreamer_baseline.py --obs raw / vae: the 2M model, to
-# 800,000 frames, several times GW-Dreamer's time).
+# 800,000 frames, several times GW-Dreamer's time); gw_ppo and ppo (ppo_variants.py --variant gw / raw at
+# its defaults, 1,000,000 frames; raw on fast images, those of the bundled GW's data). TASKS (default
+# "push_green") runs each of them on each task: the bundled GW saw push_green, open_slide, open_drawer,
+# upright_block_off_table and flat_block_in_bin in its data, not push_red or push_blue.
 #
 # Everything goes to $OUT (default: reproduced_robodesk/): checkpoints/, runs/ (TensorBoard), logs/,
 # results/ (the CSV records) and figures/. Nothing outside it is written, and an existing $OUT is refused.
@@ -27,6 +32,7 @@ OUT=${OUT:-reproduced_robodesk}
 DRY_RUN=${DRY_RUN:-0}
 PRETRAIN=${PRETRAIN:-0}
 MODELS=${MODELS:-gw}
+TASKS=${TASKS:-push_green}
 REPO="$(cd "$(dirname "$0")/.." && pwd)"
 export MUJOCO_GL=${MUJOCO_GL:-egl}
 # $OUT refused if it exists, and step (run a command inside $OUT, its output in logs/<name>.log).
@@ -39,18 +45,20 @@ if [ "$PRETRAIN" = 1 ]; then
     --checkpoint-dir checkpoints
 fi
 
-# 2. The agents, JOBS at a time: train to the criterion or 200,000 frames, then the modality ablation.
-agent() {  # model seed
-  local m=$1 s=$2 script run
-  local common="--env robodesk --task push_green --cpu-preset --seed $s --checkpoint-dir checkpoints --torch-threads 1"
+# 2. The agents, JOBS at a time: train to the criterion or their frames, then the modality ablation.
+agent() {  # model task seed
+  local m=$1 t=$2 s=$3 script run
+  local common="--env robodesk --task $t --seed $s --checkpoint-dir checkpoints --torch-threads 1"
   case $m in
-    gw) script=gw_dreamer.py run=gw_dreamer_gw ;;
-    e2e) script=gw_dreamer_e2e.py run=gw_dreamer_e2e_gw ;;
-    dreamer) script=dreamer_baseline.py run=dreamer_raw_2m common="$common --obs raw" ;;
-    vae_dreamer) script=dreamer_baseline.py run=dreamer_vae_2m common="$common --obs vae" ;;
-    *) echo "unknown model $m in MODELS (gw, e2e, dreamer, vae_dreamer)" >&2; return 2 ;;
+    gw) script=gw_dreamer.py run=gw_dreamer_gw common="$common --cpu-preset" ;;
+    e2e) script=gw_dreamer_e2e.py run=gw_dreamer_e2e_gw common="$common --cpu-preset" ;;
+    dreamer) script=dreamer_baseline.py run=dreamer_raw_2m common="$common --cpu-preset --obs raw" ;;
+    vae_dreamer) script=dreamer_baseline.py run=dreamer_vae_2m common="$common --cpu-preset --obs vae" ;;
+    gw_ppo) script=ppo_variants.py run=ppo_gw common="$common --variant gw" ;;
+    ppo) script=ppo_variants.py run=ppo_raw common="$common --variant raw --render-quality fast" ;;
+    *) echo "unknown model $m in MODELS (gw, e2e, dreamer, vae_dreamer, gw_ppo, ppo)" >&2; return 2 ;;
   esac
-  local name="${run}_robodesk_push_green_s$s"
+  local name="${run}_robodesk_${t}_s$s"
   # shellcheck disable=SC2086  # flags are words
   step "$name" python "$REPO/$script" $common --stop-at-criterion
   for drop in none vision attr; do
@@ -63,11 +71,13 @@ agent() {  # model seed
 }
 export -f step agent
 export OUT REPO DRY_RUN
-jobs_list() { for m in $MODELS; do for s in $(seq 1 "$N"); do echo "$m $s"; done; done; }
+jobs_list() {
+  for m in $MODELS; do for t in $TASKS; do for s in $(seq 1 "$N"); do echo "$m $t $s"; done; done; done
+}
 if [ "$DRY_RUN" = 1 ]; then
-  jobs_list | while read -r m s; do agent "$m" "$s"; done
+  jobs_list | while read -r m t s; do agent "$m" "$t" "$s"; done
 else
-  jobs_list | xargs -P "$JOBS" -L 1 bash -c 'agent "$1" "$2"' _
+  jobs_list | xargs -P "$JOBS" -L 1 bash -c 'agent "$1" "$2" "$3"' _
 fi
 
 # 3. The figures and the records they are drawn from.

@@ -250,7 +250,23 @@ def test_the_robodesk_reproduction_script_runs_valid_commands_only(tmp_path):
     ]
     assert [a.obs for a in dreamers] == ["raw"] * 4 + ["vae"] * 4
     assert {(a.size, a.cpu_preset, a.total_steps) for a in dreamers} == {("2m", True, 800_000)}
+    # TASKS runs each model on each task; PPO to its 1,000,000 frames, raw PPO on the GW data's fast images
+    env |= {"MODELS": "gw gw_ppo ppo", "TASKS": "push_green push_red"}
+    out = subprocess.run(["bash", str(script), "1"], cwd=tmp_path, capture_output=True, text=True, env=env)
+    assert out.returncode == 0, out.stderr
+    trains = [shlex.split(line) for line in out.stdout.splitlines() if "--stop-at-criterion" in line]
+    parsed = [tyro.cli(importlib.import_module(Path(c[1]).stem).Args, args=c[2:]) for c in trains]
+    assert [(Path(c[1]).name, a.task) for c, a in zip(trains, parsed, strict=True)] == [
+        (script, task)
+        for script in ("gw_dreamer.py", *["ppo_variants.py"] * 2)
+        for task in ("push_green", "push_red")
+    ]
+    ppo = parsed[2:]
+    assert [(a.variant, a.render_quality, a.total_steps) for a in ppo] == [("gw", None, 1_000_000)] * 2 + [
+        ("raw", "fast", 1_000_000)
+    ] * 2
+    assert list(tmp_path.iterdir()) == []
     bad = subprocess.run(
-        ["bash", str(script), "1"], cwd=tmp_path, capture_output=True, text=True, env=env | {"MODELS": "ppo"}
+        ["bash", str(script), "1"], cwd=tmp_path, capture_output=True, text=True, env=env | {"MODELS": "sac"}
     )
-    assert bad.returncode != 0 and "unknown model ppo" in bad.stderr
+    assert bad.returncode != 0 and "unknown model sac" in bad.stderr
