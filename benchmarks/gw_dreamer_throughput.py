@@ -71,6 +71,7 @@ def time_updates(env: str, a: Args, **overrides) -> dict:
         z = rng.uniform(-1, 1, (1, G.ENV_SPECS[env]["z"]))
         replay.add([0], z, np.eye(n_act)[[t % n_act]], [-1.0], [0], [t % 100 == 0], [0])
     _, flops = G.count_flops(lambda: G.train_update(agent, opts, replay, args))
+    parts = flops_by_part(agent, replay, args)
     G.train_update(agent, opts, replay, args)
     if a.device.startswith("cuda"):
         torch.cuda.synchronize()
@@ -90,7 +91,39 @@ def time_updates(env: str, a: Args, **overrides) -> dict:
         "env_steps_per_s": per_env_step,
         "args": args,
         "params": counts,
+        "parts": parts,
     }
+
+
+def flops_by_part(agent: G.Agent, replay: G.Replay, args: G.Args) -> dict[str, float]:
+    """Training FLOPs (forward and backward) of each part of one update, on one replayed batch."""
+    batch = {k: torch.as_tensor(v) for k, v in replay.sample(args.batch_size, args.batch_length).items()}
+    with torch.no_grad():
+        h_entry = G.world_model_loss(agent.wm, agent.reward_dec, batch, args)[2]
+    h0, z0, start_w = G.dream_starts(h_entry, batch, args.imag_from)
+    actor, critic = list(agent.actor.parameters()), list(agent.critic.parameters())
+
+    def world_model():
+        G.world_model_loss(agent.wm, agent.reward_dec, batch, args)[0].backward()
+
+    def open_loop():
+        G.open_loop_loss(agent.wm, agent.reward_dec, batch, h_entry, args)[0].backward()
+
+    def dreams():
+        loss_actor, loss_critic, _ = G.dream_loss(agent, h0, z0, start_w, args)
+        loss_actor.backward(inputs=actor, retain_graph=True)
+        loss_critic.backward(inputs=critic)
+
+    def replay_critic():
+        G.replay_critic_loss(agent, h_entry, batch, args).backward(inputs=critic)
+
+    parts = {"world model (one step, every replayed entry)": world_model}
+    if args.wm_open_loop:
+        parts["open-loop world-model loss"] = open_loop
+    parts["dreams and their actor-critic losses"] = dreams
+    if args.critic_replay_coef:
+        parts["replay value loss"] = replay_critic
+    return {name: G.count_flops(fn)[1] for name, fn in parts.items()}
 
 
 # The paper's criteria: Simple Shapes about 20,000 env steps (Figure 3), RoboDesk about 200,000 with
@@ -149,6 +182,8 @@ if __name__ == "__main__":
                 f"updates allow {r['env_steps_per_s']:.1f} env steps/s"
             )
             print(flops_to_criterion(env, r))
+            for part, f in r["parts"].items():
+                print(f"    {part}: {f / 1e9:.1f} GFLOP ({f / r['flops']:.0%})")
             hours = G.updates_due(r["args"].total_steps, r["args"]) * r["s_per_update"] / 3600
             print(
                 f"    parameters: world model {r['params']['wm']:,}, actor {r['params']['actor']:,}, critic "
