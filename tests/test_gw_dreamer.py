@@ -5,6 +5,7 @@ import copy
 import dataclasses
 import math
 import shutil
+import sys
 from types import SimpleNamespace
 
 import gymnasium as gym
@@ -14,6 +15,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 from conftest import (
+    ROOT,
     assert_actions_read_dreamt_states_as_constants,
     assert_episodes_separated,
     interrupt_run,
@@ -504,6 +506,19 @@ def test_update_flops_match_the_closed_form_count_of_the_layers(env, imag_from):
     )
     expected = world + dream + ac
     assert abs(counted - expected) < 0.1 * expected, (counted, expected)
+
+
+def test_the_throughput_benchmarks_parts_make_up_the_preset_update():
+    """benchmarks/gw_dreamer_throughput.py's breakdown of an update: one part per loss of the RoboDesk
+    preset, which together are the update's FLOPs (the optimizer steps count none)."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import gw_dreamer_throughput as TP
+
+    bench = TP.Args(envs=("robodesk",), cpu_preset=True, updates=1)
+    r = TP.time_updates("robodesk", bench, imag_from="last", batch_size=4, batch_length=40)
+    assert len(r["parts"]) == 4  # one-step and open-loop world model, dreams, replay value loss
+    assert sum(r["parts"].values()) == pytest.approx(r["flops"], rel=0.01)
+    assert min(r["parts"].values()) > 0.02 * r["flops"]
 
 
 def test_robodesk_cpu_preset_is_the_same_networks_smaller_and_the_paper_sizes_stay_the_default():
