@@ -164,6 +164,23 @@ class Args:
     entropy_coef: float | None = None
     """actor entropy regulariser, which the paper does not give (default 3e-3 Simple Shapes, 3e-4
     RoboDesk: DreamerV3's value, for its continuous actor; why they differ: docs/paper_readings.md)"""
+    critic_replay_coef: float | None = None
+    """weight of a second critic loss on the replayed states themselves, toward lambda-returns of their real
+    rewards (DreamerV3's later replay value loss, 0.3 there); 0 (default): the critic learns from dreams
+    alone, as the paper's actor-critic; 0.3 with RoboDesk's --cpu-preset (docs/paper_readings.md)"""
+    wm_open_loop: int | None = None
+    """K > 0: L_WM adds a K-step open-loop term: from every --wm-open-loop-stride-th replayed h_t, K steps
+    that feed the world model's own z back along the actions taken, with the same z, reward and done losses
+    against the real z_{t+k}, r and d. 0 (default): the paper's one-step loss from the real z; 10 with
+    RoboDesk's --cpu-preset, whose dreams otherwise drift off the real track (docs/paper_readings.md)"""
+    wm_open_loop_stride: int = 16
+    """replayed entries between two starts of the open-loop term"""
+    explore_noise: float | None = None
+    """sigma > 0: Gaussian noise N(0, sigma^2) added to each continuous action taken while collecting
+    training data (clipped to the action box; the replay stores the action taken), as DreamerV1. 0
+    (default): the paper's actor alone; 0.3 with RoboDesk's --cpu-preset, whose actor at its std floor
+    gives the world model too little action variety to learn the actions' effect (docs/paper_readings.md).
+    Evaluations and dreams use the actor as it is"""
     slow_critic_decay: float = 0.98
     """EMA decay of the slow critic that regularises the critic (DreamerV3)"""
     return_norm_decay: float = 0.99
@@ -233,6 +250,10 @@ class Args:
         return self
 
 
+# Settings the paper does not have, which RoboDesk's --cpu-preset turns on (CPU_TABLE): off by default.
+PAPER_OFF = dict(critic_replay_coef=0.0, wm_open_loop=0, explore_noise=0.0)
+
+
 # The flags whose defaults differ between the environments (appendix Tables "GW-Dreamer training" and
 # "GW training in GW-Dreamer End-to-End"; the step counts and evaluation intervals are the scale of the
 # paper's Figure 3; the weight decay is the GW pre-training table's).
@@ -252,6 +273,7 @@ TABLE = {
         gw_lr_end=1e-3,
         gw_cycle=25_000,
         gw_weight_decay=1e-5,
+        **PAPER_OFF,
     ),
     "robodesk": dict(
         criterion=0.70,
@@ -268,6 +290,7 @@ TABLE = {
         gw_lr_end=1e-4,
         gw_cycle=50_000,
         gw_weight_decay=1e-6,
+        **PAPER_OFF,
     ),
 }
 
@@ -277,10 +300,21 @@ TABLE = {
 CPU_PRESET = {"gw_batch_size": 256}
 
 
-# RoboDesk under --cpu-preset: gw_dreamer.py's CPU batch (and its CPU_SIZES networks); its other preset
-# departures (replay critic loss, open-loop world-model loss, exploration noise) are not this script's.
-# An evaluation's 10 episodes are 20,000 frames of acting, so the preset evaluates every 100,000.
-CPU_TABLE = {"robodesk": dict(total_steps=200_000, batch_size=32, batch_length=64, eval_every=100_000)}
+# RoboDesk under --cpu-preset: gw_dreamer.py's preset (its CPU_SIZES networks, batch, replay critic loss,
+# open-loop world-model loss and exploration noise), so that the two variants differ only in how the GW
+# is trained. An evaluation's 10 episodes are 20,000 frames of acting, so the preset evaluates every
+# 100,000.
+CPU_TABLE = {
+    "robodesk": dict(
+        total_steps=200_000,
+        batch_size=32,
+        batch_length=64,
+        eval_every=100_000,
+        critic_replay_coef=0.3,
+        wm_open_loop=10,
+        explore_noise=0.3,
+    )
+}
 TAG = "gw_dreamer_e2e"  # the prefix of every line this script prints
 SIZES = {
     "simple_shapes": {
@@ -687,6 +721,42 @@ def world_model_loss(wm, reward_dec, batch: dict[str, torch.Tensor], args: Args)
     return loss, {"loss_z": loss_z, "loss_r": loss_r, "loss_d": loss_d}, h_entry, valid
 
 
+def world_model_loss_open_loop(wm, reward_dec, batch: dict[str, torch.Tensor], args: Args):
+    """L_WM as the update computes it: world_model_loss, plus open_loop_loss under --wm-open-loop."""
+    loss, terms, h_entry, valid = world_model_loss(wm, reward_dec, batch, args)
+    if args.wm_open_loop:
+        loss_open, terms_open = open_loop_loss(wm, reward_dec, batch, h_entry, args)
+        loss, terms = loss + loss_open, terms | terms_open
+    return loss, terms, h_entry, valid
+
+
+def open_loop_loss(wm, reward_dec, batch: dict[str, torch.Tensor], h_entry: torch.Tensor, args: Args):
+    """--wm-open-loop K: L_WM's terms after k = 1..K steps dreamt along the replayed actions from the
+    teacher-forced h_t of every stride-th entry t, the world model's own z fed back (gradients through
+    it): a dream runs open loop for 20 steps, while the one-step loss trains from the real z only. A
+    start's step k counts while no episode ended in between."""
+    K, z, a, last = args.wm_open_loop, batch["z"], batch["a"], batch["last"]
+    r, d = batch["r"] - args.reward_offset, batch["d"]
+    starts = torch.arange(0, z.shape[1] - K, args.wm_open_loop_stride, device=z.device)
+    h, z_k = h_entry[:, starts].flatten(0, 1), z[:, starts].flatten(0, 1)
+    alive = torch.ones(h.shape[0], device=z.device)
+    loss_z = loss_r = loss_d = n = 0.0
+    for k in range(K):
+        t = starts + k
+        alive = alive * (1 - last[:, t].flatten())
+        h = wm.step(h, z_k, a[:, t].flatten(0, 1))
+        z_k, r_out, d_logit = wm.heads(h)
+        loss_z = loss_z + (((z_k - z[:, t + 1].flatten(0, 1)) ** 2).sum(-1) * alive).sum()
+        loss_r = loss_r + (reward_dec.loss(r_out, r[:, t].flatten()) * alive).sum()
+        bce = F.binary_cross_entropy_with_logits(d_logit, d[:, t].flatten(), reduction="none")
+        loss_d = loss_d + (bce * alive).sum()
+        n = n + alive.sum()
+    n = n.clamp(min=1)
+    loss_z, loss_r, loss_d = loss_z / n, loss_r / n, loss_d / n
+    loss = args.wm_z_coef * loss_z + args.wm_reward_coef * loss_r + args.wm_done_coef * loss_d
+    return loss, {"loss_z_open": loss_z, "loss_r_open": loss_r}
+
+
 def dream_starts(h_entry: torch.Tensor, batch: dict[str, torch.Tensor], imag_from: str):
     """The states (h, z) that dreams start from, and their weights (0 for an episode's final observation,
     which has no next step to dream).
@@ -803,6 +873,28 @@ def gw_loss(gw: GlobalWorkspace, u_v: torch.Tensor, u_attr: torch.Tensor, args: 
     return sum(betas[k] * terms[k] for k in terms), terms
 
 
+def replay_critic_loss(agent: Agent, h_entry: torch.Tensor, batch: dict[str, torch.Tensor], args: Args):
+    """The critic on every replayed state (B, T + 1), toward lambda-returns of the replayed rewards that
+    bootstrap from its own values and stop at an episode's final observation, regularised toward its slow
+    copy like the dream loss (DreamerV3's replay value loss). A dream gives the critic one start per
+    sequence; this gives it every state the agent visited, with rewards nobody dreamt."""
+    r, d, last = batch["r"] - args.reward_offset, batch["d"], batch["last"]
+    feats = agent.features(h_entry, batch["z"])
+    logits = agent.critic(feats)
+    values = agent.twohot.mean(logits.detach())
+    ret, out = values[:, -1], []
+    for t in reversed(range(feats.shape[1] - 1)):
+        ret = r[:, t] + args.gamma * (1 - d[:, t]) * ((1 - args.lam) * values[:, t + 1] + args.lam * ret)
+        ret = torch.where(last[:, t] > 0, values[:, t], ret)  # no transition out of a final observation
+        out.append(ret)
+    returns, valid = torch.stack(out[::-1], 1), 1 - last[:, :-1]
+    with torch.no_grad():
+        slow_target = agent.twohot.mean(agent.slow_critic(feats[:, :-1]))
+    twohot = agent.twohot
+    loss = twohot.loss(logits[:, :-1], returns) + twohot.loss(logits[:, :-1], slow_target)
+    return (loss * valid).sum() / valid.sum().clamp(min=1)
+
+
 def dream_loss(agent: Agent, h0: torch.Tensor, z0: torch.Tensor, start_w: torch.Tensor, args: Args):
     """The actor-critic's part of an update: dreams from (h0, z0), then their loss (Algorithm 1, lines
     12-14)."""
@@ -820,7 +912,11 @@ def dream_loss(agent: Agent, h0: torch.Tensor, z0: torch.Tensor, start_w: torch.
     )
 
 
-EAGER = {"gw": gw_loss, "wm": world_model_loss, "ac": dream_loss}  # the loss computations of an update
+EAGER = {
+    "gw": gw_loss,
+    "wm": world_model_loss_open_loop,
+    "ac": dream_loss,
+}  # the loss computations of an update
 
 
 def compiled_losses(device, backend: str = "inductor") -> dict:
@@ -883,6 +979,9 @@ def train_update(
     opts["wm"].step()
     h0, z0, start_w = dream_starts(h_entry.detach(), batch, args.imag_from)
     loss_actor, loss_critic, stats = losses["ac"](agent, h0, z0, start_w, args)
+    if args.critic_replay_coef:
+        stats["loss_critic_replay"] = replay_critic_loss(agent, h_entry.detach(), batch, args)
+        loss_critic = loss_critic + args.critic_replay_coef * stats["loss_critic_replay"]
     if check and not (torch.isfinite(loss_actor) and torch.isfinite(loss_critic)):
         raise FloatingPointError(f"non-finite actor-critic loss at env step {env_step:,}")
     opts["actor"].zero_grad(set_to_none=True)
@@ -934,6 +1033,14 @@ def updates_due(env_steps: int, args: Args) -> int:
     few to train a world model and an actor-critic from scratch, so it cannot be the paper's."""
     agent_steps = max(env_steps - args.learning_starts, 0) / ACTION_REPEAT[args.env]
     return int(agent_steps / args.train_ratio)
+
+
+def explore(a: torch.Tensor, args: Args, env_steps: int) -> torch.Tensor:
+    """The action taken while collecting: the actor's a_t plus --explore-noise's N(0, sigma^2), clipped to
+    the action box (the replay stores it). Evaluations and dreams use the actor's a_t as it is."""
+    if not args.explore_noise:
+        return a
+    return (a + args.explore_noise * torch.randn_like(a)).clamp(-1, 1)
 
 
 def count_flops(fn):
@@ -988,7 +1095,7 @@ def main(args: Args) -> dict:
             if state.env_steps < args.learning_starts:
                 a = random_actions(rng, n_envs, action_dim, agent.discrete, dev)
             else:
-                a = agent.actor.act(agent.features(h, z))
+                a = explore(agent.actor.act(agent.features(h, z)), args, state.env_steps)
             h = agent.wm.step(h, z, a)
         obs, r, term, trunc, info = envs_.step(action_for_env(a, agent.discrete))
         u = (u_v.cpu().numpy(), u_attr.cpu().numpy())
@@ -1337,10 +1444,10 @@ def checkpoint_entries(run: Run) -> dict:
 
 # Ranges of this script's flags (check_settings, below the fence, adds the flags every agent has).
 RANGES = {
-    ">= 1": "batch_size batch_length imag_horizon eval_every log_every",
+    ">= 1": "batch_size batch_length imag_horizon eval_every log_every wm_open_loop_stride",
     ">= 2": "gw_batch_size",  # it pairs samples
     ">= 0": "learning_starts video_every entropy_coef wm_z_coef wm_reward_coef wm_done_coef actor_mean_reg"
-    " gw_updates gw_weight_decay",
+    " gw_updates gw_weight_decay critic_replay_coef wm_open_loop explore_noise",
     "> 0": "save_minutes train_ratio wm_lr ac_lr gw_cycle gw_lr_start gw_lr_max gw_lr_end fusion_temperature"
     " contrastive_temperature",
     "[0, 1]": "lam slow_critic_decay return_norm_decay",
@@ -1358,6 +1465,10 @@ def script_checks(args: Args) -> None:
     require(ok, "learning_starts", args.learning_starts, rule)
     rule = "is for RoboDesk, whose episodes never end: where they end it changes the best policy"
     require(args.env == "robodesk" or args.reward_offset == 0, "reward_offset", args.reward_offset, rule)
+    rule = f"must be below --batch-length {args.batch_length}: each start needs K replayed steps after it"
+    require(args.wm_open_loop < args.batch_length, "wm_open_loop", args.wm_open_loop, rule)
+    rule = "is for continuous actions (RoboDesk)"
+    require(args.env == "robodesk" or not args.explore_noise, "explore_noise", args.explore_noise, rule)
 
 
 def schedule(args: Args) -> str:

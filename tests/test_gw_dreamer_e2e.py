@@ -162,6 +162,28 @@ def test_robodesk_cli_run(pretrained_robodesk):
     assert ck["state"]["updates"] == 17 and ck["state"]["gw_updates"] == 34  # 200 actions of 4 frames
 
 
+def test_robodesk_cpu_preset_trains_with_gw_dreamers_preset_settings(pretrained_robodesk, monkeypatch):
+    """--cpu-preset on RoboDesk takes gw_dreamer.py's replay value loss, open-loop world-model loss and
+    exploration noise (the paper's settings have none); every update computes both losses, and every
+    collected action after the random ones goes through the noise."""
+    import gw_dreamer as G
+
+    preset = ("critic_replay_coef", "wm_open_loop", "wm_open_loop_stride", "explore_noise")
+    cpu, gw_cpu = (m.Args(env="robodesk", cpu_preset=True).resolve() for m in (E, G))
+    assert [getattr(cpu, k) for k in preset] == [getattr(gw_cpu, k) for k in preset] == [0.3, 10, 16, 0.3]
+    assert [getattr(E.Args(env="robodesk").resolve(), k) for k in preset] == [0.0, 0, 16, 0.0]
+    taken, real_explore = [], E.explore
+    monkeypatch.setattr(E, "explore", lambda a, args, t: taken.append(real_explore(a, args, t)) or taken[-1])
+    outs, real_update = [], E.train_update
+    monkeypatch.setattr(E, "train_update", lambda *a, **k: outs.append(real_update(*a, **k)) or outs[-1])
+    run = dict(env="robodesk", cpu_preset=True, wm_open_loop=4, total_steps=240, learning_starts=200)
+    run |= dict(episode_length=400, exp_name="preset", eval_episodes=1, eval_every=10**6, video_every=0)
+    monkeypatch.chdir(pretrained_robodesk[0])  # its TensorBoard folder goes under the test's runs/
+    E.main(tiny_agent_args(E, pretrained_robodesk, **run))
+    assert len(taken) == (240 - 200) // 4 and len(outs) == 5
+    assert all({"loss_z_open", "loss_critic_replay"} <= set(out) for out in outs)
+
+
 # --------------------------------------------------------------------------------------------------
 # The jointly trained Global Workspace
 # --------------------------------------------------------------------------------------------------

@@ -39,7 +39,8 @@ SHARED = {
     # The GW-Dreamer world model and actor-critic (frozen GW and end-to-end variants)
     **dict.fromkeys(
         "Actor Critic RewardDecoder WorldModel SIZES dream_starts schedule actor_grad world_model_loss"
-        " actor_critic_loss dream_loss"
+        " actor_critic_loss dream_loss world_model_loss_open_loop open_loop_loss replay_critic_loss explore"
+        " PAPER_OFF"
         " updates_due mlp final_observations imagine run_name finish".split(),
         (GW, E2E),
     ),
