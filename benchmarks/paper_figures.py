@@ -309,8 +309,8 @@ def rl_flops_cell(runs: list[dict], label: str, setting: str, tasks: list[str], 
         return "X"
     total, reached = 0.0, []
     for t in ran:
-        hit = [float(r["rl_train_flops"]) for r in mine if r["task"] == t and r["status"] == "reached"]
-        if hit := [f for f in hit if f]:
+        hit = [r["rl_train_flops"] for r in mine if r["task"] == t and r["status"] == "reached"]
+        if hit := [float(f) for f in hit if f]:  # a reached run without a FLOPs record is left out
             total, reached = total + float(np.mean(hit)), [*reached, t]
     if single:
         n_hit = sum(1 for r in mine if r["task"] == ran[0] and r["status"] == "reached")
@@ -521,7 +521,7 @@ def main(args: Args) -> dict:
     matplotlib.use("Agg")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    for name in ("results", "gw_checkpoint", "vae_checkpoint"):  # the defaults name files of the repository
+    for name in ("results", "gw_checkpoint", "vae_checkpoint", "pretrained"):  # defaults: repository files
         p = Path(getattr(args, name))
         if getattr(args, name) and not p.is_absolute() and not p.exists() and (ROOT / p).exists():
             setattr(args, name, str(ROOT / p))
@@ -550,8 +550,6 @@ def main(args: Args) -> dict:
     tasks_drawn = []
     if env == "robodesk":
         pretrained = Path(args.pretrained)
-        if not pretrained.is_absolute() and not pretrained.exists():
-            pretrained = ROOT / pretrained
         seen = gw_tasks(pretrained)
         unseen = sorted({r["task"] for r in runs} - set(seen))
         for name, tasks, title in (
