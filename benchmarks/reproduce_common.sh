@@ -1,14 +1,47 @@
-# Sourced by benchmarks/reproduce_*.sh after they set OUT and DRY_RUN: refuse an existing $OUT, make its
-# logs/ folder, and define step, which runs a command inside $OUT (or prints it under DRY_RUN=1) with its
-# output in logs/<name>.log.
+# Sourced by benchmarks/reproduce_*.sh after they set OUT, DRY_RUN and RESUME. A new reproduction refuses
+# an existing $OUT; RESUME=1 continues the one in $OUT instead. Defines step (run a command inside $OUT,
+# or print it under DRY_RUN=1, with its output in logs/<name>.log) and train (the same for a training).
 if [ "$DRY_RUN" != 1 ]; then
-  if [ -e "$OUT" ]; then echo "error: $OUT exists; choose another OUT=" >&2; exit 2; fi
+  if [ "$RESUME" = 1 ]; then
+    if [ ! -d "$OUT/logs" ]; then echo "error: RESUME=1: $OUT holds no reproduction to continue" >&2; exit 2; fi
+  elif [ -e "$OUT" ]; then
+    echo "error: $OUT exists; choose another OUT=, or RESUME=1 to continue the reproduction in it" >&2
+    exit 2
+  fi
   mkdir -p "$OUT/logs"
 fi
 
+# step name command...: runs once. A step that succeeded leaves logs/<name>.done and is not run again
+# under RESUME=1; a failed one is reported and the others go on.
 step() {
   local name=$1; shift
   if [ "$DRY_RUN" = 1 ]; then echo "$*"; return 0; fi
-  echo "$*" > "$OUT/logs/$name.log"
-  (cd "$OUT" && "$@") >> "$OUT/logs/$name.log" 2>&1 || echo "failed (exit $?): $* (see $OUT/logs/$name.log)"
+  if [ -e "$OUT/logs/$name.done" ]; then echo "done before, not run again: $name"; return 0; fi
+  echo "$*" >> "$OUT/logs/$name.log"
+  if (cd "$OUT" && "$@") >> "$OUT/logs/$name.log" 2>&1; then
+    touch "$OUT/logs/$name.done"
+  else
+    echo "failed (exit $?): $* (see $OUT/logs/$name.log)"
+  fi
+}
+
+# train name command...: a step whose script saves and takes --resume. Under RESUME=1 a training that
+# started before and did not finish continues from its last save; one that stopped before its first save
+# has nothing to continue and starts again (--overwrite drops the TensorBoard folder it began).
+train() {
+  local name=$1; shift
+  if [ "$DRY_RUN" = 1 ] || [ ! -e "$OUT/logs/$name.log" ] || [ -e "$OUT/logs/$name.done" ]; then
+    step "$name" "$@"
+    return 0
+  fi
+  local rc=0
+  echo "$* --resume" >> "$OUT/logs/$name.log"
+  (cd "$OUT" && "$@" --resume) >> "$OUT/logs/$name.log" 2>&1 || rc=$?
+  if [ "$rc" = 0 ]; then
+    touch "$OUT/logs/$name.done"
+  elif tail -n 2 "$OUT/logs/$name.log" | grep -q "no checkpoint"; then
+    step "$name" "$@" --overwrite
+  else
+    echo "failed (exit $rc): $* --resume (see $OUT/logs/$name.log)"
+  fi
 }

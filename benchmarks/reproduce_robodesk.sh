@@ -24,12 +24,15 @@
 #
 # Everything goes to $OUT (default: reproduced_robodesk/): checkpoints/, runs/ (TensorBoard), logs/,
 # results/ (the CSV records) and figures/. Nothing outside it is written, and an existing $OUT is refused.
-# A run that stopped can be continued alone: its command is the first line of its log, plus --resume.
+# RESUME=1 (same N, MODELS, TASKS) continues a reproduction that was stopped: finished steps are not run
+# again, a training that was cut continues from its last save (--resume), a pre-training its unfinished
+# stage, and the figures are redrawn.
 set -euo pipefail
 N=${1:-3}
 JOBS=${JOBS:-2}
 OUT=${OUT:-reproduced_robodesk}
 DRY_RUN=${DRY_RUN:-0}
+RESUME=${RESUME:-0}
 PRETRAIN=${PRETRAIN:-0}
 MODELS=${MODELS:-gw}
 TASKS=${TASKS:-push_green}
@@ -60,7 +63,9 @@ agent() {  # model task seed
   esac
   local name="${run}_robodesk_${t}_s$s"
   # shellcheck disable=SC2086  # flags are words
-  step "$name" python "$REPO/$script" $common --stop-at-criterion
+  train "$name" python "$REPO/$script" $common --stop-at-criterion
+  # a training that failed or was cut is not evaluated (RESUME=1 continues it, then evaluates it)
+  [ "$DRY_RUN" = 1 ] || [ -e "$OUT/logs/$name.done" ] || return 0
   for drop in none vision attr; do
     # shellcheck disable=SC2086
     step "${name}_drop_$drop" python "$REPO/$script" $common --eval-only --drop $drop --eval-episodes 10
@@ -69,8 +74,8 @@ agent() {  # model task seed
     fi
   done
 }
-export -f step agent
-export OUT REPO DRY_RUN
+export -f step train agent
+export OUT REPO DRY_RUN RESUME
 jobs_list() {
   for m in $MODELS; do for t in $TASKS; do for s in $(seq 1 "$N"); do echo "$m $t $s"; done; done; done
 }
@@ -80,7 +85,8 @@ else
   jobs_list | xargs -P "$JOBS" -L 1 bash -c 'agent "$1" "$2" "$3"' _
 fi
 
-# 3. The figures and the records they are drawn from.
+# 3. The figures and the records they are drawn from, redrawn on every call (RESUME=1 included).
+[ "$DRY_RUN" = 1 ] || rm -f "$OUT/logs/figures.done"
 step figures python "$REPO/benchmarks/paper_figures.py" --env robodesk --runs runs --export results \
   --out figures
 [ "$DRY_RUN" = 1 ] || echo "done: $OUT/figures, $OUT/results (merge them into docs/ to replace the committed ones)"

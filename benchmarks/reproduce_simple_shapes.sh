@@ -14,12 +14,15 @@
 #
 # Everything goes to $OUT (default: reproduced/): data/, checkpoints/, runs/ (TensorBoard), logs/,
 # results/ (the CSV records) and figures/. Nothing outside it is written, and an existing $OUT is refused.
-# A run that stopped can be continued alone: its command is the first line of its log, plus --resume.
+# RESUME=1 (same N, MODELS, TASKS) continues a reproduction that was stopped: finished steps are not run
+# again, a training that was cut continues from its last save (--resume), a pre-training its unfinished
+# stage, and the figures are redrawn.
 set -euo pipefail
 N=${1:-3}
 JOBS=${JOBS:-2}
 OUT=${OUT:-reproduced}
 DRY_RUN=${DRY_RUN:-0}
+RESUME=${RESUME:-0}
 REPO="$(cd "$(dirname "$0")/.." && pwd)"
 # $OUT refused if it exists, and step (run a command inside $OUT, its output in logs/<name>.log).
 # shellcheck source=benchmarks/reproduce_common.sh
@@ -46,13 +49,15 @@ agents() {
   done
 }
 agent() {  # "<script> <flags>|<training-only flags>"
-  local spec=$1 script flags train name
+  local spec=$1 script flags train_flags name
   read -r script flags <<< "${spec%%|*}"
-  train=${spec#*|}
+  train_flags=${spec#*|}
   name=$(echo "$script $flags" | tr -c 'A-Za-z0-9_.\n' '_')
   local common="--checkpoint-dir checkpoints --torch-threads 1"
   # shellcheck disable=SC2086  # flags are words
-  step "$name" python "$REPO/$script" $flags $train $common --stop-at-criterion
+  train "$name" python "$REPO/$script" $flags $train_flags $common --stop-at-criterion
+  # a training that failed or was cut is not evaluated (RESUME=1 continues it, then evaluates it)
+  [ "$DRY_RUN" = 1 ] || [ -e "$OUT/logs/$name.done" ] || return 0
   local run_dir=""
   local stem  # the run's name: its agent checkpoint's, printed at the end (agents/<name>.pt)
   [ "$DRY_RUN" = 1 ] || stem=$(grep -o "agents/[A-Za-z0-9_]*\.pt" "$OUT/logs/$name.log" | tail -1 || true)
@@ -63,15 +68,16 @@ agent() {  # "<script> <flags>|<training-only flags>"
     if [ -n "$run_dir" ]; then grep "\[eval\]" "$OUT/logs/${name}_drop_$drop.log" > "$OUT/$run_dir/eval_drop_$drop.txt" || true; fi
   done
 }
-export -f step agent
-export OUT REPO DRY_RUN
+export -f step train agent
+export OUT REPO DRY_RUN RESUME
 if [ "$DRY_RUN" = 1 ]; then
   agents | while read -r spec; do agent "$spec"; done
 else
   agents | xargs -P "$JOBS" -I{} bash -c 'agent "$1"' _ {}
 fi
 
-# 3. The figures and the records they are drawn from.
+# 3. The figures and the records they are drawn from, redrawn on every call (RESUME=1 included).
+[ "$DRY_RUN" = 1 ] || rm -f "$OUT/logs/figures.done"
 step figures python "$REPO/benchmarks/paper_figures.py" --runs runs --export results --out figures \
   --gw-checkpoint checkpoints/simple_shapes/gw.pt --vae-checkpoint checkpoints/simple_shapes/vae.pt
 [ "$DRY_RUN" = 1 ] || echo "done: $OUT/figures, $OUT/results (copy them over docs/ to replace the committed ones)"

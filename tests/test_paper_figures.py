@@ -270,3 +270,67 @@ def test_the_robodesk_reproduction_script_runs_valid_commands_only(tmp_path):
         ["bash", str(script), "1"], cwd=tmp_path, capture_output=True, text=True, env=env | {"MODELS": "sac"}
     )
     assert bad.returncode != 0 and "unknown model sac" in bad.stderr
+
+
+FAKE_PYTHON = r"""#!/bin/bash
+# Stands in for python: records its arguments; a seed's training behaves as the test's scenario says.
+echo "$*" >> "$CALLS"
+case "$*" in
+  *--eval-only*) echo "[eval] normalised return 0.5"; exit 0 ;;
+  *paper_figures.py*) exit 0 ;;
+esac
+case "$*" in
+  *"--seed 1 "*) exit 0 ;;  # trains to its end in the first call
+  *"--seed 2 "*--resume*) echo "error: --resume: there is no checkpoint x.pt to continue" >&2; exit 2 ;;
+  *"--seed 2 "*--overwrite*) exit 0 ;;
+  *"--seed 3 "*--resume*) exit 0 ;;
+esac
+exit 137  # seeds 2 and 3 are killed in the first call (seed 2 before its first save)
+"""
+
+
+def test_a_stopped_reproduction_continues_with_resume(tmp_path):
+    """RESUME=1 runs no finished step again, continues a cut training from its save (--resume), starts
+    again one that had no save (--overwrite), evaluates only finished trainings and redraws the figures;
+    without it an existing reproduction is refused."""
+    bin_dir, work, calls = tmp_path / "bin", tmp_path / "work", tmp_path / "calls.txt"
+    bin_dir.mkdir(), work.mkdir()
+    (bin_dir / "python").write_text(FAKE_PYTHON)
+    (bin_dir / "python").chmod(0o755)
+    script = str(ROOT / "benchmarks" / "reproduce_robodesk.sh")
+    env = {"PATH": f"{bin_dir}:/usr/bin:/bin", "CALLS": str(calls), "JOBS": "1", "OUT": "out"}
+
+    def reproduce(**extra):
+        calls.write_text("")
+        out = subprocess.run(["bash", script, "3"], cwd=work, capture_output=True, text=True, env=env | extra)
+        made = [line.split() for line in calls.read_text().splitlines()]
+        return out, [(c[c.index("--seed") + 1] if "--seed" in c else "figures", c[-1]) for c in made]
+
+    out, made = reproduce()
+    assert out.returncode == 0, out.stderr
+    assert made == [
+        ("1", "--stop-at-criterion"),
+        *[("1", "10")] * 3,  # its three ablations
+        ("2", "--stop-at-criterion"),
+        ("3", "--stop-at-criterion"),
+        ("figures", "figures"),
+    ]
+    assert "failed (exit 137)" in out.stdout
+    refused, made = reproduce()
+    assert refused.returncode == 2 and "RESUME=1" in refused.stderr and made == []
+    out, made = reproduce(RESUME="1")
+    assert out.returncode == 0, out.stderr
+    assert made == [
+        ("2", "--resume"),
+        ("2", "--overwrite"),
+        *[("2", "10")] * 3,
+        ("3", "--resume"),
+        *[("3", "10")] * 3,
+        ("figures", "figures"),
+    ]
+    out, made = reproduce(RESUME="1")
+    assert made == [("figures", "figures")] and "failed" not in out.stdout
+    missing = subprocess.run(
+        ["bash", script], cwd=work, capture_output=True, text=True, env=env | {"OUT": "x", "RESUME": "1"}
+    )
+    assert missing.returncode == 2 and "no reproduction to continue" in missing.stderr
