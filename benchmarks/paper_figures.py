@@ -135,6 +135,16 @@ def model_of(run_name: str, env: str = "simple_shapes") -> tuple[str, int, str] 
     return None
 
 
+def running_minutes(walls: list[float]) -> float:
+    """Minutes a run trained, from the wall times of its events: a gap over 3 times the median spacing is
+    a pause between two parts of a resumed run and counts as one median spacing."""
+    gaps = np.diff(np.sort(walls))
+    if gaps.size == 0:
+        return 0.0
+    typical = float(np.median(gaps))
+    return float(np.where(gaps > 3 * typical, typical, gaps).sum()) / 60
+
+
 def read_runs(folder: Path, env: str = "simple_shapes") -> tuple[list[dict], list[dict], list[dict]]:
     """(runs, curves, ablation) records of every recognised run of ``env`` under ``folder``."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
@@ -171,8 +181,10 @@ def read_runs(folder: Path, env: str = "simple_shapes") -> tuple[list[dict], lis
         status = "reached" if crit is not None else "not reached"
         if crit is None and total and last < int(total.group(1)) * 0.95:
             status = "cut"  # stopped well before its --total-steps (PPO ends at whole rollouts)
-        walls = [e.wall_time for e in episodes]
-        wall_min = f"{(max(walls) - min(walls)) / 60:.1f}"
+        clock = acc.Scalars(
+            "charts/train_flops" if "charts/train_flops" in tags else "charts/normalised_return"
+        )
+        wall_min = f"{running_minutes([e.wall_time for e in clock]):.1f}"
         runs.append(
             dict(model=model, setting="default", seed=seed, status=status, criterion_step=crit or "")
             | tag

@@ -20,16 +20,32 @@ import paper_figures as PF  # noqa: E402
 PNG = b"\x89PNG\r\n\x1a\n"
 
 
-def fake_run(folder, name, returns, step_every, criterion=None, total=None, flops_per_step=1e9, drops=None):
+def fake_run(
+    folder,
+    name,
+    returns,
+    step_every,
+    criterion=None,
+    total=None,
+    flops_per_step=1e9,
+    drops=None,
+    pause_at=None,
+):
     """A run as the agent scripts log it: one normalised return per episode, the criterion step once,
-    cumulative FLOPs every 1,000 steps, the settings table, and --eval-only outputs per dropped modality."""
+    cumulative FLOPs every 1,000 steps, the settings table, and --eval-only outputs per dropped modality.
+    Its clock runs a minute per 1,000 steps, with a 2-hour pause (a resumed run's two parts) at
+    ``pause_at`` steps."""
     w = SummaryWriter(folder / name)
     w.add_text("hyperparameters", f"|param|value|\n|-|-|\n|total_steps|{total}|")
     last = step_every * len(returns)
+
+    def clock(k):
+        return 1.7e9 + 60 * k / 1000 + (7200 if pause_at is not None and k > pause_at else 0)
+
     for k in range(0, last + 1, 1000):
-        w.add_scalar("charts/train_flops", k * flops_per_step, k)
+        w.add_scalar("charts/train_flops", k * flops_per_step, k, walltime=clock(k))
     for i, r in enumerate(returns, 1):
-        w.add_scalar("charts/normalised_return", r, i * step_every)
+        w.add_scalar("charts/normalised_return", r, i * step_every, walltime=clock(i * step_every))
     if criterion is not None:
         w.add_scalar("charts/criterion_step", criterion, criterion)
     w.close()
@@ -46,6 +62,8 @@ def test_figures_and_table_from_event_files(tmp_path):
     fake_run(runs, "gw_dreamer_gw_simple_shapes_s2", [0.2] * 20, 100, 2000, 2000, drops=both | {"none": 0.9})
     fake_run(runs, "gw_dreamer_gw_simple_shapes_s3", [0.0] * 20, 100, None, 2000)
     fake_run(runs, "ppo_gw_simple_shapes_s1", [0.5] * 30, 100, None, 30000)  # cut: 3,000 of 30,000 steps
+    # 20,000 steps in 20 minutes of training, in two parts 2 hours apart
+    fake_run(runs, "ppo_vae_simple_shapes_s1", [0.5] * 20, 1000, None, 20000, pause_at=10000)
     fake_run(runs, "someone_elses_run_s1", [1.0] * 20, 100, 100, 2000)  # not a known model: ignored
     out, res = tmp_path / "fig", tmp_path / "res"
     cmd = ["--runs", str(runs), "--out", str(out), "--export", str(res), "--caption", "test machine"]
@@ -66,7 +84,10 @@ def test_figures_and_table_from_event_files(tmp_path):
     assert status == {("GW-Dreamer", "1"): "reached", ("GW-Dreamer", "2"): "reached"} | {
         ("GW-Dreamer", "3"): "not reached",
         ("GW-PPO", "1"): "cut",
+        ("VAE-PPO", "1"): "not reached",
     }
+    minutes = {(r["model"], r["seed"]): r["wall_min"] for r in rows}
+    assert minutes[("VAE-PPO", "1")] == "20.0" and minutes[("GW-PPO", "1")] == "3.0"  # the pause left out
     with open(res / "simple_shapes_ablation.csv", newline="") as f:
         ablation = {(r["seed"], r["drop"]): float(r["normalised_return"]) for r in csv.DictReader(f)}
     assert ablation == {(s, d): v for s in "12" for d, v in both.items()} | {("2", "none"): 0.9}
