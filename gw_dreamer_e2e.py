@@ -195,8 +195,9 @@ class Args:
     actions (Simple Shapes), dynamics for continuous ones (RoboDesk), as DreamerV3 (docs/paper_readings.md)"""
 
     # environments
-    render_quality: Literal["faithful", "fast"] = "faithful"
-    """RoboDesk image quality (fast: CPU experiments only, docs/environments.md)"""
+    render_quality: Literal["faithful", "fast"] | None = None
+    """RoboDesk image quality (fast: CPU experiments only, docs/environments.md); default: the images the
+    VAEs were trained on (another kind is refused)"""
     episode_length: int = 2000
     """RoboDesk episode length in physics-control repeats (paper: 2000, i.e. 500 agent steps)"""
 
@@ -247,6 +248,8 @@ class Args:
                 setattr(self, name, value)
         if self.gw_batch_size is None:
             self.gw_batch_size = self.batch_size * self.batch_length
+        if self.env == "simple_shapes" and self.render_quality is None:
+            self.render_quality = "faithful"  # not used: Simple Shapes has one renderer
         return self
 
 
@@ -1360,6 +1363,8 @@ class FrozenVAEs(nn.Module):
         self.register_buffer("attr_mean", torch.as_tensor(vae["attr_mean"], dtype=torch.float32))
         self.register_buffer("attr_std", torch.as_tensor(vae["attr_std"], dtype=torch.float32))
         self.latent = s["latent"]
+        # RoboDesk: the image quality of the VAEs' training data (the agent must see the same images).
+        self.render_quality = vae.get("args", {}).get("render_quality", "faithful")
         self.eval().requires_grad_(False)
 
     @torch.no_grad()
@@ -1407,7 +1412,7 @@ MAY_CHANGE = set(
 
 
 # Settings an evaluation must share with the agent it loads (they shape its networks or inputs).
-EVAL_KEYS = ("task", "reward_loss", "loss_preset")
+EVAL_KEYS = ("task", "reward_loss", "loss_preset", "render_quality")
 
 
 # What the run infrastructure below the fence reads of this script.
@@ -1540,7 +1545,17 @@ class Run:
 def load_frozen(args: Args, dev) -> tuple[FrozenVAEs, dict]:
     """The frozen VAEs this run reads (yours under --checkpoint-dir, else the bundled ones)."""
     paths = pretrained_paths(args.checkpoint_dir, args.env, {"vae.pt": args.vae_checkpoint})
-    return load_vaes(args.env, paths["vae.pt"], args.checkpoint_dir).to(dev), paths
+    vaes = load_vaes(args.env, paths["vae.pt"], args.checkpoint_dir)
+    if args.env == "robodesk":  # the images the VAEs were trained on, or a clear refusal
+        if args.render_quality is None:
+            args.render_quality = vaes.render_quality
+        elif args.render_quality != vaes.render_quality:
+            raise UsageError(
+                f"--render-quality {args.render_quality}: the VAEs in {paths['vae.pt']} were trained on "
+                f"{vaes.render_quality} images, and their encoders have never seen the other kind; leave "
+                f"the flag out, or pre-train VAEs on {args.render_quality} images"
+            )
+    return vaes.to(dev), paths
 
 
 def run_name(args: Args, model: str) -> str:

@@ -162,6 +162,19 @@ def test_robodesk_cli_run(pretrained_robodesk):
     assert ck["state"]["updates"] == 17 and ck["state"]["gw_updates"] == 34  # 200 actions of 4 frames
 
 
+def test_robodesk_sees_the_images_of_its_vaes(pretrained_robodesk):
+    """On RoboDesk the agent renders the images its frozen VAEs were trained on (fast ones here) and
+    refuses the other kind; an agent is evaluated on the images it was trained on."""
+    ck = str(pretrained_robodesk[0] / "ck")
+    args = E.Args(env="robodesk", checkpoint_dir=ck).resolve()
+    assert args.render_quality is None
+    E.load_frozen(args, torch.device("cpu"))
+    assert args.render_quality == "fast"
+    with pytest.raises(E.UsageError, match="trained on fast images"):
+        E.load_frozen(E.Args(env="robodesk", checkpoint_dir=ck, render_quality="faithful").resolve(), "cpu")
+    assert E.Args().resolve().render_quality == "faithful" and "render_quality" in E.EVAL_KEYS
+
+
 def test_robodesk_cpu_preset_trains_with_gw_dreamers_preset_settings(pretrained_robodesk, monkeypatch):
     """--cpu-preset on RoboDesk takes gw_dreamer.py's replay value loss, open-loop world-model loss and
     exploration noise (the paper's settings have none); every update computes both losses, and every
