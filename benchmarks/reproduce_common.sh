@@ -11,18 +11,21 @@ if [ "$DRY_RUN" != 1 ]; then
   mkdir -p "$OUT/logs"
 fi
 
-# step name command...: runs once. A step that succeeded leaves logs/<name>.done and is not run again
-# under RESUME=1; a failed one is reported and the others go on.
+# attempt name command...: run it inside $OUT, output appended to logs/<name>.log after the command
+# line; on success logs/<name>.done marks the step finished. Returns the command's exit status.
+attempt() {
+  local name=$1; shift
+  echo "$*" >> "$OUT/logs/$name.log"
+  (cd "$OUT" && "$@") >> "$OUT/logs/$name.log" 2>&1 && touch "$OUT/logs/$name.done"
+}
+
+# step name command...: runs once. A finished step is not run again under RESUME=1; a failed one is
+# reported and the others go on.
 step() {
   local name=$1; shift
   if [ "$DRY_RUN" = 1 ]; then echo "$*"; return 0; fi
   if [ -e "$OUT/logs/$name.done" ]; then echo "done before, not run again: $name"; return 0; fi
-  echo "$*" >> "$OUT/logs/$name.log"
-  if (cd "$OUT" && "$@") >> "$OUT/logs/$name.log" 2>&1; then
-    touch "$OUT/logs/$name.done"
-  else
-    echo "failed (exit $?): $* (see $OUT/logs/$name.log)"
-  fi
+  attempt "$name" "$@" || echo "failed (exit $?): $* (see $OUT/logs/$name.log)"
 }
 
 # train name command...: a step whose script saves and takes --resume. Under RESUME=1 a training that
@@ -34,12 +37,9 @@ train() {
     step "$name" "$@"
     return 0
   fi
-  local rc=0
-  echo "$* --resume" >> "$OUT/logs/$name.log"
-  (cd "$OUT" && "$@" --resume) >> "$OUT/logs/$name.log" 2>&1 || rc=$?
-  if [ "$rc" = 0 ]; then
-    touch "$OUT/logs/$name.done"
-  elif tail -n 2 "$OUT/logs/$name.log" | grep -q "no checkpoint"; then
+  attempt "$name" "$@" --resume && return 0
+  local rc=$?
+  if tail -n 2 "$OUT/logs/$name.log" | grep -q "no checkpoint"; then
     step "$name" "$@" --overwrite
   else
     echo "failed (exit $rc): $* --resume (see $OUT/logs/$name.log)"

@@ -74,7 +74,7 @@ agent() {  # model task seed
     fi
   done
 }
-export -f step train agent
+export -f attempt step train agent
 export OUT REPO DRY_RUN RESUME
 jobs_list() {
   for m in $MODELS; do for t in $TASKS; do for s in $(seq 1 "$N"); do echo "$m $t $s"; done; done; done

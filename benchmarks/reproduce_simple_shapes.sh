@@ -68,7 +68,7 @@ agent() {  # "<script> <flags>|<training-only flags>"
     if [ -n "$run_dir" ]; then grep "\[eval\]" "$OUT/logs/${name}_drop_$drop.log" > "$OUT/$run_dir/eval_drop_$drop.txt" || true; fi
   done
 }
-export -f step train agent
+export -f attempt step train agent
 export OUT REPO DRY_RUN RESUME
 if [ "$DRY_RUN" = 1 ]; then
   agents | while read -r spec; do agent "$spec"; done
