@@ -25,6 +25,7 @@ steps and renders N environments at once; ``SimpleShapesEnv`` is the same machin
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import gymnasium as gym
@@ -629,9 +630,11 @@ def sample_dataset(n: int, seed: int = 0, wide_share: float = 0.0) -> dict[str, 
     return {"image": images, "attr": attr, "wide": wide}
 
 
+@functools.lru_cache
 def reference_returns(episodes: int = 1_000, seed: int = 10_000) -> tuple[float, float]:
     """Mean returns of a uniformly random policy and of ``greedy_action`` over ``episodes`` episodes:
-    the 0 and the 1 of the normalised return every agent script logs (docs/paper_readings.md)."""
+    the 0 and the 1 of the normalised return every agent script logs (docs/paper_readings.md). Measured
+    once per process (a few seconds: every episode renders its images)."""
     out = []
     for policy in ("random", "greedy"):
         env = SimpleShapesVectorEnv(episodes)

@@ -1165,7 +1165,7 @@ def test_explore_noise_widens_the_collected_actions_only(pretrained_robodesk, mo
     # a run: one noisy action per agent step after the random ones, stored as taken; none in evaluations
     taken, real = [], G.explore
     monkeypatch.setattr(G, "explore", lambda a, args, step: taken.append(real(a, args, step)) or taken[-1])
-    run = dict(env="robodesk", explore_noise=0.3, total_steps=240, learning_starts=200, episode_length=400)
+    run = dict(env="robodesk", explore_noise=0.3, total_steps=240, learning_starts=200, episode_length=240)
     run |= dict(exp_name="noise")  # apart from the other tests' runs on the same checkpoints
     monkeypatch.chdir(pretrained_robodesk[0])  # its TensorBoard folder goes under the test's runs/
     G.main(tiny_agent_args(G, pretrained_robodesk, **run, eval_episodes=1, eval_every=10**6, video_every=0))

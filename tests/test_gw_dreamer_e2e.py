@@ -190,7 +190,7 @@ def test_robodesk_cpu_preset_trains_with_gw_dreamers_preset_settings(pretrained_
     outs, real_update = [], E.train_update
     monkeypatch.setattr(E, "train_update", lambda *a, **k: outs.append(real_update(*a, **k)) or outs[-1])
     run = dict(env="robodesk", cpu_preset=True, wm_open_loop=4, total_steps=240, learning_starts=200)
-    run |= dict(episode_length=400, exp_name="preset", eval_episodes=1, eval_every=10**6, video_every=0)
+    run |= dict(episode_length=240, exp_name="preset", eval_episodes=1, eval_every=10**6, video_every=0)
     monkeypatch.chdir(pretrained_robodesk[0])  # its TensorBoard folder goes under the test's runs/
     E.main(tiny_agent_args(E, pretrained_robodesk, **run))
     assert len(taken) == (240 - 200) // 4 and len(outs) == 5

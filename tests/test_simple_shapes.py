@@ -303,7 +303,9 @@ def test_reference_returns_bracket_the_normalised_return():
 
     random_ret, greedy_ret = reference_returns(episodes=200, seed=5)
     assert random_ret < -1_800 and -600 < greedy_ret < -100, (random_ret, greedy_ret)
-    assert reference_returns(episodes=200, seed=5) == (random_ret, greedy_ret)  # seeded
+    # seeded: measured again (not the process's cached figures), the same
+    assert reference_returns.__wrapped__(episodes=200, seed=5) == (random_ret, greedy_ret)
+    assert reference_returns(episodes=200, seed=5) is reference_returns(episodes=200, seed=5)  # once
 
 
 @pytest.mark.parametrize(

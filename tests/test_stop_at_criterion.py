@@ -12,7 +12,7 @@ import gw_dreamer_e2e as E
 SMALL = {
     G: dict(imag_horizon=5, train_ratio=10.0),
     E: dict(imag_horizon=5, train_ratio=10.0, gw_batch_size=64),
-    D: DREAMER_SMALL | dict(train_ratio=4.0),
+    D: DREAMER_SMALL | dict(train_ratio=1.0),
 }
 
 
