@@ -398,44 +398,10 @@ BAD_FLAGS = [
 ]
 
 
-# Each case runs the script as __main__ with its command line, in one child process (a process start
-# each would cost the suite minutes): exit code and stderr per case, as JSON.
-RUN_AS_MAIN = textwrap.dedent(
-    """
-    import contextlib, io, json, runpy, sys, traceback
-    sys.path.insert(0, {root!r})
-    results = []
-    for script, argv in {cases!r}:
-        sys.argv, err = [script, *argv], io.StringIO()
-        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-            try:
-                runpy.run_path(script, run_name="__main__")
-                code = 0
-            except SystemExit as e:
-                code = e.code
-            except Exception:
-                code = traceback.print_exc() or "an exception"
-        results.append((code, err.getvalue()))
-    print(json.dumps(results))
-    """
-)
-
-
 def test_flags_out_of_range_stop_at_start_with_one_line(tmp_path):
     """Exit 2, one line, and nothing written, for each bad value of BAD_FLAGS."""
-    cases = [
-        (str(ROOT / script), [*flags, "--checkpoint-dir", str(tmp_path / "ck")])
-        for script, flags, _ in BAD_FLAGS
-    ]
-    code = RUN_AS_MAIN.format(root=str(ROOT), cases=cases)
-    out = subprocess.run(
-        [sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=600
-    )
-    assert out.returncode == 0, out.stderr
-    results = json.loads(out.stdout.splitlines()[-1])
-    for (code, stderr), (script, flags, message) in zip(results, BAD_FLAGS, strict=True):
-        args = [script, *flags]
-        assert_refused(subprocess.CompletedProcess(args, code, "", stderr), message)
+    for script, flags, message in BAD_FLAGS:
+        assert_refused(run_cli(script, tmp_path, *flags, "--checkpoint-dir", str(tmp_path / "ck")), message)
     assert not (tmp_path / "ck").exists() and not (tmp_path / "runs").exists()
 
 
