@@ -31,29 +31,19 @@ TINY_PRETRAIN = (
 ).split()
 
 
-def run_cli(
-    script: str, cwd: Path, *args: str, timeout: int = 300, process: bool = False
-) -> subprocess.CompletedProcess:
+def run_cli(script: str, cwd: Path, *args: str) -> subprocess.CompletedProcess:
     """Run a top-level script through its command line in ``cwd`` and return what it did (exit code,
     output). The script runs as ``python script args`` runs it (its ``__main__`` block parses ``args``),
-    but in this process, where torch is already imported: a new process costs 4-6 s of imports, a
-    quarter of the suite. ``process=True`` starts one (``timeout`` applies to it only)."""
-    if process:
-        return subprocess.run(
-            [sys.executable, str(ROOT / script), *args],
-            cwd=cwd,
-            capture_output=True,
-            text=True,
-            timeout=timeout,
-        )
+    but in this process, where torch is already imported: a new process costs 4-6 s of imports. Tests of
+    what only a process shows (signals, kill -9, a second live process, torchrun) start their own."""
     return run_as_main(ROOT / script, cwd, list(args))
 
 
 def run_as_main(path: Path, cwd: Path, args: list[str]) -> subprocess.CompletedProcess:
     """``path`` executed as ``__main__`` with ``args`` in ``cwd``; its stdout, stderr and exit code
-    collected as a process's would be. What a process's end would undo is undone: the working directory,
-    sys.argv, the torch thread count, and the ``atexit`` callbacks the script registered (its run lock)
-    are called when it returns."""
+    collected as a process's would be. What the process's end would undo is undone when it returns: the
+    working directory, sys.argv and the torch thread count are restored, and the ``atexit`` callbacks it
+    registered (its run lock) are called."""
     out, err, at_exit = io.StringIO(), io.StringIO(), []
     before = (os.getcwd(), sys.argv, torch.get_num_threads(), atexit.register)
     os.chdir(cwd)
@@ -79,9 +69,9 @@ def run_as_main(path: Path, cwd: Path, args: list[str]) -> subprocess.CompletedP
     return subprocess.CompletedProcess([str(path), *args], code, out.getvalue(), err.getvalue())
 
 
-def run_script(script: str, cwd: Path, *args: str, timeout: int = 300) -> str:
+def run_script(script: str, cwd: Path, *args: str) -> str:
     """Run a top-level script through its CLI in ``cwd``; fail with its output if it fails."""
-    out = run_cli(script, cwd, *args, timeout=timeout)
+    out = run_cli(script, cwd, *args)
     assert out.returncode == 0, out.stdout + out.stderr
     return out.stdout
 

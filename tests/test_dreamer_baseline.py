@@ -189,9 +189,7 @@ def rd_run(pretrained_robodesk):
     its policy is an expert."""
     tmp = pretrained_robodesk[0]
     more = "--total-steps 240 --learning-starts 80 --batch-size 2 --eval-episodes 1 --eval-every 1000".split()
-    log = run_script(
-        "dreamer_baseline.py", tmp, *RD, "--checkpoint-dir", str(tmp / "ck"), *TINY, *more, timeout=600
-    )
+    log = run_script("dreamer_baseline.py", tmp, *RD, "--checkpoint-dir", str(tmp / "ck"), *TINY, *more)
     return tmp, log, agent_path(tmp / "ck" / "robodesk", "dreamer_raw_12m_robodesk_push_green_s1")
 
 
@@ -214,7 +212,6 @@ def test_robodesk_cli_runs_for_both_observations(rd_run):
         str(tmp / "ck"),
         *TINY,
         *more.split(),
-        timeout=600,
     )
     assert "VAE-Dreamer 12m" in log and "final_success_count" in log
 

@@ -142,7 +142,7 @@ def test_robodesk_cli_run(pretrained_robodesk):
     tmp = pretrained_robodesk[0]
     env = ["--env", "robodesk", "--task", "push_green", "--checkpoint-dir", str(tmp / "ck")]
     more = "--eval-episodes 1 --total-steps 800 --episode-length 240 --batch-size 2 --eval-every 4000".split()
-    log = run_script("gw_dreamer.py", tmp, *env, "--render-quality", "fast", *TINY, *more, timeout=600)
+    log = run_script("gw_dreamer.py", tmp, *env, "--render-quality", "fast", *TINY, *more)
     assert "GW-Dreamer on robodesk_push_green" in log and "final_success_count" in log
     # steps are simulator frames (the paper's unit): 800 frames = 200 actions, one update per 10 actions
     assert "800 env steps, counted in simulator frames (4 per agent step)" in log

@@ -153,7 +153,7 @@ def test_robodesk_cli_run(pretrained_robodesk):
     tmp = pretrained_robodesk[0]
     env = ["--env", "robodesk", "--task", "push_green", "--checkpoint-dir", str(tmp / "ck")]
     more = "--eval-episodes 1 --total-steps 800 --episode-length 240 --batch-size 2 --eval-every 4000".split()
-    log = run_script("gw_dreamer_e2e.py", tmp, *env, "--render-quality", "fast", *TINY, *more, timeout=600)
+    log = run_script("gw_dreamer_e2e.py", tmp, *env, "--render-quality", "fast", *TINY, *more)
     assert "end to end on robodesk_push_green" in log and "final_success_count" in log
     assert "scripted push_green expert" in log and "final_normalised_return" in log
     ck = torch.load(
