@@ -50,6 +50,16 @@
    steps, averaged over the agents left out. If the true attributes do no better than z, a head fit on a
    few policies' states extrapolates poorly whatever it reads, and the test does not single out z.
 
+7. How the return spreads over episodes (--spread-episodes N, push_green or another task with a scripted
+   expert): N episodes from fixed starts (seeds 900, 901, ...) acted three ways: as the run collects
+   (actions sampled, plus the run's --explore-noise; the criterion's episodes), the same with the same
+   random draws but h_t rebuilt at every step from h = 0 over the last --batch-length steps (the longest
+   history a replayed h_t has read in training, while acting carries h over the whole episode), and as
+   the run evaluates (the actor's mode, no noise). Per way: the normalised return's mean and s.e.m. and
+   the episodes below 0 (worse than the random policy); for those against the rest, the end effector's
+   distance to the task's target at the start and the share of steps with a robot joint within 0.1 rad
+   of its bound. Equal returns in the first two ways clear the GRU state's long history as a cause.
+
     python benchmarks/robodesk_diagnose.py \\
         checkpoints/robodesk/agents/gw_dreamer_gw_robodesk_push_green_s1.pt
 """
@@ -88,6 +98,8 @@ class Args:
     agent's"""
     reward_transfer: int = 0
     """episodes per checkpoint of part 6 (0 skips it)"""
+    spread_episodes: int = 0
+    """episodes of part 7 for each of its three ways (0 skips it)"""
     press_tolerance: bool = False
     """also print what pressing takes: the scripted expert aimed off the button's centre, at each gripper
     setting (part 4's reference; the same for every checkpoint)"""
@@ -554,6 +566,83 @@ def decoded_end_effector(encoder, z: torch.Tensor) -> np.ndarray:
     return attr[0, 18:21].numpy()
 
 
+@torch.no_grad()
+def windowed_state(wm, zs: list, actions: list, window: int) -> torch.Tensor:
+    """Part 7: h after the last ``window`` of the (z, a) steps given, read from h = 0 (as the newest h_t of
+    a replayed sequence)."""
+    h = torch.zeros(zs[0].shape[0], wm.hidden)
+    for z, a in zip(zs[-window:], actions[-window:], strict=True):
+        h = wm.step(h, z, a)
+    return h
+
+
+@torch.no_grad()
+def episode_spread(path: str, episodes: int, seed: int = 900) -> dict:
+    """Part 7: {way: (normalised returns, start distances in cm, shares of steps at a joint limit)}, the
+    N episodes of each way stepped side by side."""
+    from envs.robodesk import RoboDeskEnv
+    from envs.robodesk_experts import PLANS
+
+    agent, encoder, env0 = agent_in_simulator(path)
+    ck = torch.load(path, weights_only=False, map_location="cpu")
+    args = G.Args(**{k: v for k, v in ck["args"].items() if k in G.Args.__dataclass_fields__}).resolve()
+    ref = G.reference_returns(args)
+    if ref is None:
+        raise SystemExit(f"error: part 7 needs a task with a scripted expert; {args.task} has none")
+    env0.close()
+    ways = {"collected": (False, 0), "collected, h from the last steps": (False, args.batch_length)}
+    ways["evaluation"] = (True, 0)
+    out = {}
+    for way, (mode, window) in ways.items():
+        torch.manual_seed(seed)  # the two collected ways draw the same actions from the same states
+        kw = {"render_quality": args.render_quality, "episode_length": args.episode_length}
+        envs = [RoboDeskEnv(task=args.task, **kw) for _ in range(episodes)]
+        obs = [e.reset(seed=seed + i)[0] for i, e in enumerate(envs)]
+        lo, hi = envs[0].joint_bounds[:7].T
+        # distance to the target, the task expert's last way-point
+        ee = [e.data.site_xpos[e._ee_site] for e in envs]
+        start = [100 * np.linalg.norm(x - PLANS[args.task](e)[-1][0]) for x, e in zip(ee, envs, strict=True)]
+        h, zs, acts = torch.zeros(episodes, agent.wm.hidden), [], []
+        ret, at_limit, done = np.zeros(episodes), np.zeros(episodes), False
+        while not done:
+            z = encoder({k: np.stack([o[k] for o in obs]) for k in obs[0]})
+            if window and zs:
+                h = windowed_state(agent.wm, zs, acts, window)
+            a = agent.actor.act(agent.features(h, z), mode=mode)
+            if not mode:
+                a = G.explore(a, args, 0)
+            if window:
+                zs, acts = (zs + [z])[-window:], (acts + [a])[-window:]
+            h = agent.wm.step(h, z, a)
+            for i, e in enumerate(envs):
+                obs[i], r, term, trunc, _ = e.step(a[i].numpy())
+                ret[i] += r
+                at_limit[i] += np.any(np.minimum(e.data.qpos[:7] - lo, hi - e.data.qpos[:7]) < 0.1)
+                done = term or trunc
+        steps = envs[0]._num_steps / G.ACTION_REPEAT["robodesk"]
+        for e in envs:
+            e.close()
+        out[way] = ((ret - ref[0]) / (ref[1] - ref[0]), np.array(start), at_limit / steps)
+    return out
+
+
+def print_spread(spread: dict) -> None:
+    """Part 7's lines: per way, the return's spread and what sets its failed episodes apart."""
+    for way, (ret, start, at_limit) in spread.items():
+        sem = ret.std(ddof=1) / np.sqrt(len(ret)) if len(ret) > 1 else 0.0
+        bad = ret < 0
+        line = f"  {way}: normalised return {ret.mean():.2f} ± {sem:.2f} over {len(ret)} episodes, "
+        line += f"{bad.sum()} below 0 ({np.round(ret, 2)})"
+        if bad.any() and not bad.all():
+            line += (
+                f"; those start {start[bad].mean():.0f} cm from the target (the others "
+                f"{start[~bad].mean():.0f}) and have a joint within 0.1 rad of its bound in "
+                f"{100 * at_limit[bad].mean():.0f}% of their steps (the others "
+                f"{100 * at_limit[~bad].mean():.0f}%)"
+            )
+        print(line)
+
+
 def press_tolerance() -> None:
     """The scripted push_green expert with its target moved off the button's centre, at four gripper
     settings: the share of steps 60-120 with the light on (the press has settled by step 60)."""
@@ -672,6 +761,9 @@ def main(args: Args) -> list[dict]:
                         f"{err:.1f} cm"
                     )
                 r["held_out_by_source"] = held
+        if args.spread_episodes:
+            r["spread"] = episode_spread(path, args.spread_episodes)
+            print_spread(r["spread"])
         out.append(r)
     if args.reward_transfer:
         if len(args.checkpoints) < 2:

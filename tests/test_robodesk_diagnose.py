@@ -1,5 +1,6 @@
 """benchmarks/robodesk_diagnose.py: how much of the stored actions the state predicts (part 1), the distance
-from the agent's arm poses to a dataset's (part 5) and the reward read across agents (part 6)."""
+from the agent's arm poses to a dataset's (part 5), the reward read across agents (part 6) and the GRU
+state read over the last steps only (part 7)."""
 
 import sys
 
@@ -110,3 +111,22 @@ def test_action_predictability_separates_actions_the_state_gives_from_noise():
         for _, got_r2, got_resid in rows:
             assert np.all((r2[0] < got_r2) & (got_r2 <= r2[1])), got_r2
             assert np.all((resid[0] <= got_resid) & (got_resid < resid[1])), got_resid
+
+
+def test_windowed_state_reads_only_the_last_steps_from_zero_as_a_replayed_h():
+    """Part 7: over a window as long as the history, h is the state carried while acting; over a shorter
+    one, the state of h = 0 stepped through the window's steps alone, which differs from the carried one."""
+    torch.manual_seed(0)
+    wm = D.G.WorldModel(D.G.CPU_SIZES["robodesk"], 76, 5, 255)
+    zs = [torch.rand(2, 76) * 2 - 1 for _ in range(12)]
+    acts = [torch.rand(2, 5) * 2 - 1 for _ in range(12)]
+    h = torch.zeros(2, wm.hidden)
+    with torch.no_grad():
+        for z, a in zip(zs, acts, strict=True):
+            h = wm.step(h, z, a)
+        tail = torch.zeros(2, wm.hidden)
+        for z, a in zip(zs[-4:], acts[-4:], strict=True):
+            tail = wm.step(tail, z, a)
+    assert torch.equal(D.windowed_state(wm, zs, acts, 64), h)
+    assert torch.equal(D.windowed_state(wm, zs, acts, 4), tail)
+    assert (tail - h).abs().max() > 1e-3
