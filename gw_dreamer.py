@@ -1317,6 +1317,7 @@ EXPERIMENT_KEYS = {
     "zero_init": False,
     "z_source": "gw",
     "wm_residual": False,
+    "done_head": True,
 }
 
 
