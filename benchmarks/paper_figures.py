@@ -452,7 +452,7 @@ def plot_ablation(
     labels = [
         m for m, _, _ in models(env) if any(r["model"] == m and r["setting"] == setting for r in ablation)
     ]
-    fig, ax = plt.subplots(figsize=(max(4.0, 2.2 * len(labels) + 1.5), 4.0))
+    fig, ax = plt.subplots(figsize=(max(5.0, 2.2 * len(labels) + 1.5), 4.0))
     width = 0.8 / len(DROPS)
     for j, (drop, name) in enumerate(DROPS.items()):
         means, sems = [], []
