@@ -5,6 +5,8 @@ FLOPs to the paper's criteria under both readings of where dreams start, and act
 
     python benchmarks/gw_dreamer_throughput.py                      # both envs, both readings
     python benchmarks/gw_dreamer_throughput.py --envs simple_shapes --device cuda
+    python benchmarks/gw_dreamer_throughput.py --envs robodesk --cpu-preset --imag-from last \
+        --no-done-head --wm-open-loop-stride 32 --batch-size 28     # a faster CPU candidate
 
 The paper's FLOPs table gives 5.41e15 RL training FLOPs for GW-Dreamer on RoboDesk push_green until its
 criterion at about 200,000 environment steps; the lines "FLOPs to the criterion" set each reading next to
@@ -21,6 +23,7 @@ import torch
 import tyro
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent / "experiments"))
 import gw_dreamer as G  # noqa: E402
 
 
@@ -42,6 +45,12 @@ class Args:
     """measure gw_dreamer.py --cpu-preset (RoboDesk's CPU sizes and batch) instead of the paper's sizes"""
     imag_from: tuple[str, ...] = ("last", "all")
     """readings of where dreams start to measure"""
+    batch_size: int | None = None
+    """replayed sequences per update (default: the run's)"""
+    wm_open_loop_stride: int | None = None
+    """replayed entries between two starts of the open-loop term (default: the run's)"""
+    no_done_head: bool = False
+    """measure benchmarks/experiments/gw_dreamer_experiments.py --no-done-head (RoboDesk)"""
 
 
 def random_encoder(env: str, width: int) -> G.FrozenEncoder:
@@ -60,8 +69,16 @@ def random_encoder(env: str, width: int) -> G.FrozenEncoder:
 
 
 def time_updates(env: str, a: Args, **overrides) -> dict:
+    for k in ("batch_size", "wm_open_loop_stride"):
+        if getattr(a, k) is not None:
+            overrides[k] = getattr(a, k)
+    make_agent = G.Agent
+    if a.no_done_head:  # the experiment's world model: no done head, dreams continue with c = 1
+        import gw_dreamer_experiments as X
+
+        make_agent = X.experiment_agent(X.Args(env=env, cpu_preset=a.cpu_preset, done_head=False))
     args = G.Args(env=env, cpu_preset=a.cpu_preset, **overrides).resolve()
-    agent = G.Agent(env, G.ENV_SPECS[env]["z"], args.reward_loss, cpu_preset=a.cpu_preset).to(a.device)
+    agent = make_agent(env, G.ENV_SPECS[env]["z"], args.reward_loss, cpu_preset=a.cpu_preset).to(a.device)
     counts = {k: sum(p.numel() for p in getattr(agent, k).parameters()) for k in ("wm", "actor", "critic")}
     opts = G.make_optimizers(agent, args)
     n_act = G.SIZES[env]["actions"]

@@ -519,6 +519,15 @@ def test_the_throughput_benchmarks_parts_make_up_the_preset_update():
     assert len(r["parts"]) == 4  # one-step and open-loop world model, dreams, replay value loss
     assert sum(r["parts"].values()) == pytest.approx(r["flops"], rel=0.01)
     assert min(r["parts"].values()) > 0.02 * r["flops"]
+    # the faster candidate's settings: the experiment's world model without a done head, half the
+    # open-loop starts, the batch given on the benchmark's command line
+    fast = TP.Args(envs=("robodesk",), cpu_preset=True, updates=1, no_done_head=True)
+    fast.wm_open_loop_stride, fast.batch_size = 32, 4
+    f = TP.time_updates("robodesk", fast, imag_from="last", batch_length=40)
+    assert f["args"].batch_size == 4 and f["args"].wm_open_loop_stride == 32
+    assert r["params"]["wm"] - f["params"]["wm"] == 151_297  # the done head's MLP
+    assert f["parts"]["open-loop world-model loss"] < 0.6 * r["parts"]["open-loop world-model loss"]
+    assert sum(f["parts"].values()) == pytest.approx(f["flops"], rel=0.01)
 
 
 def test_robodesk_cpu_preset_is_the_same_networks_smaller_and_the_paper_sizes_stay_the_default():
