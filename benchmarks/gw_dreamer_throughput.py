@@ -74,6 +74,8 @@ def time_updates(env: str, a: Args, **overrides) -> dict:
             overrides[k] = getattr(a, k)
     make_agent = G.Agent
     if a.no_done_head:  # the experiment's world model: no done head, dreams continue with c = 1
+        if env != "robodesk":
+            raise SystemExit("--no-done-head is a RoboDesk experiment: give --envs robodesk")
         import gw_dreamer_experiments as X
 
         make_agent = X.experiment_agent(X.Args(env=env, cpu_preset=a.cpu_preset, done_head=False))
