@@ -154,8 +154,13 @@ class Args:
     that feed the world model's own z back along the actions taken, with the same z, reward and done losses
     against the real z_{t+k}, r and d. 0 (default): the paper's one-step loss from the real z; 10 with
     RoboDesk's --cpu-preset, whose dreams otherwise drift off the real track (docs/paper_readings.md)"""
-    wm_open_loop_stride: int = 16
-    """replayed entries between two starts of the open-loop term"""
+    wm_open_loop_stride: int | None = None
+    """replayed entries between two starts of the open-loop term (default 16; 32 with RoboDesk's
+    --cpu-preset)"""
+    done_head: Literal["on", "off"] | None = None
+    """off: the world model has no done head and its dreams continue (c = 1), for RoboDesk, whose episodes
+    never end early (only the step limit truncates them), so the head can only learn that nothing ends.
+    Default on, the paper's world model; off with RoboDesk's --cpu-preset (13% fewer FLOPs per update)"""
     explore_noise: float | None = None
     """sigma > 0: Gaussian noise N(0, sigma^2) added to each continuous action taken while collecting
     training data (clipped to the action box; the replay stores the action taken), as DreamerV1. 0
@@ -227,8 +232,10 @@ class Args:
         return self
 
 
-# Settings the paper does not have, which RoboDesk's --cpu-preset turns on (CPU_TABLE): off by default.
-PAPER_OFF = dict(critic_replay_coef=0.0, wm_open_loop=0, explore_noise=0.0)
+# Settings the paper does not have, which RoboDesk's --cpu-preset turns on (CPU_TABLE): off by default;
+# and the paper's done head, which it turns off.
+PAPER_OFF = dict(critic_replay_coef=0.0, wm_open_loop=0, wm_open_loop_stride=16, explore_noise=0.0)
+PAPER_ON = dict(done_head="on")
 
 
 # The flags whose defaults differ between the environments (appendix Table "GW-Dreamer training"; the
@@ -245,6 +252,7 @@ TABLE = {
         eval_every=5_000,
         criterion=0.75,
         **PAPER_OFF,
+        **PAPER_ON,
     ),
     "robodesk": dict(
         total_steps=1_000_000,
@@ -257,23 +265,27 @@ TABLE = {
         eval_every=50_000,
         criterion=0.70,
         **PAPER_OFF,
+        **PAPER_ON,
     ),
 }
 
 
 # --cpu-preset on RoboDesk: the smaller networks (CPU_SIZES) with the batch, replay critic loss, open-loop
-# world-model loss and exploration noise that made them reach the criterion in 3 of 3 seeds (the
-# departures and their evidence: docs/paper_readings.md); 200,000 frames in about 3.4 h on one core beside
-# another run. An evaluation's 10 episodes are 20,000 frames of acting, so it evaluates every 100,000.
+# world-model loss and exploration noise that made them reach the criterion, and no done head (RoboDesk's
+# episodes never end early); the departures and their evidence: docs/paper_readings.md. 200,000 frames
+# take about 2.4 h on one core beside another run (docs/gw_dreamer.md#robodesk-on-a-cpu). An evaluation's
+# 10 episodes are 20,000 frames of acting, so it evaluates every 100,000.
 CPU_TABLE = {
     "robodesk": dict(
         total_steps=200_000,
-        batch_size=32,
+        batch_size=28,
         batch_length=64,
         eval_every=100_000,
         critic_replay_coef=0.3,
         wm_open_loop=10,
+        wm_open_loop_stride=32,
         explore_noise=0.3,
+        done_head="off",
     )
 }
 TAG = "gw_dreamer"  # the prefix of every line this script prints
@@ -385,7 +397,7 @@ class WorldModel(nn.Module):
     """h_{t+1} = GRU(h_t, in([z_t, a_t])); z_{t+1} = tanh-head(h_{t+1}); reward and done heads read
     [h_{t+1}, z_{t+1}] (the tables' inputs 74 = 64 + 10 and 1100 = 1024 + 76)."""
 
-    def __init__(self, sizes: dict, z_dim: int, action_dim: int, reward_out: int):
+    def __init__(self, sizes: dict, z_dim: int, action_dim: int, reward_out: int, done_head: bool = True):
         super().__init__()
         s = sizes
         # A linear input layer brings [z, a] to the table's GRU input size (docs/paper_readings.md).
@@ -399,7 +411,7 @@ class WorldModel(nn.Module):
         # Two hidden layers of 256: the tables draw three, but all four of their parameter counts (reward
         # 150,000 / 413,000, done 85,000 / 348,000) are those of two (docs/paper_readings.md).
         self.reward_head = mlp(s["gru_hidden"] + z_dim, 256, reward_out, 2)
-        self.done_head = mlp(s["gru_hidden"] + z_dim, 256, 1, 2)
+        self.done_head = mlp(s["gru_hidden"] + z_dim, 256, 1, 2) if done_head else None
         self.hidden = s["gru_hidden"]
 
     def step(self, h: torch.Tensor, z: torch.Tensor, a: torch.Tensor) -> torch.Tensor:
@@ -408,7 +420,17 @@ class WorldModel(nn.Module):
     def heads(self, h_next: torch.Tensor):
         z_next = self.z_head(h_next)
         feat = torch.cat([h_next, z_next], -1)
-        return z_next, self.reward_head(feat), self.done_head(feat).squeeze(-1)
+        return z_next, self.reward_head(feat), self.done_logit(feat)
+
+    def done_logit(self, feat: torch.Tensor) -> torch.Tensor:
+        """The done head's logit; --done-head off: NEVER_ENDS everywhere (a dream continues with c = 1 -
+        1e-13 and the done loss against d = 0 is 1e-13, with no parameters and no gradient)."""
+        if self.done_head is None:
+            return torch.full_like(feat[..., 0], NEVER_ENDS)
+        return self.done_head(feat).squeeze(-1)
+
+
+NEVER_ENDS = -30.0  # the done logit of a world model without done head: sigmoid(-30) = 9e-14
 
 
 class RewardDecoder:
@@ -514,12 +536,13 @@ class Agent(nn.Module):
         reward_loss: str,
         return_norm_decay: float = 0.99,
         cpu_preset: bool = False,
+        done_head: bool = True,
     ):
         super().__init__()
         s = sizes_of(env, cpu_preset)
         self.discrete = env == "simple_shapes"
         self.twohot = TwoHot()
-        self.wm = WorldModel(s, z_dim, s["actions"], 255 if reward_loss == "twohot" else 1)
+        self.wm = WorldModel(s, z_dim, s["actions"], 255 if reward_loss == "twohot" else 1, done_head)
         ac_in = s["gru_hidden"]  # the actor and critic read h_t (see ``features``)
         self.actor = Actor(ac_in, s["actions"], s["ac_layers"], self.discrete, s["ac_width"])
         self.critic = Critic(ac_in, s["ac_layers"], s["ac_width"])
@@ -921,7 +944,14 @@ def main(args: Args) -> dict:
     random.seed(args.seed)
     np.random.seed(args.seed)
     torch.manual_seed(args.seed)
-    agent = Agent(args.env, encoder.z_dim, args.reward_loss, args.return_norm_decay, args.cpu_preset).to(dev)
+    agent = Agent(
+        args.env,
+        encoder.z_dim,
+        args.reward_loss,
+        args.return_norm_decay,
+        args.cpu_preset,
+        done_head=args.done_head == "on",
+    ).to(dev)
     model = "gw" if encoder.preset == "gw" else "clip"
     default = Path(args.checkpoint_dir) / args.env / "agents" / f"{run_name(args, model)}.pt"
     agent_path = Path(args.checkpoint) if args.checkpoint else default
@@ -1306,7 +1336,7 @@ MAY_CHANGE = set(
 
 
 # Settings an evaluation must share with the agent it loads (they shape its networks or inputs).
-EVAL_KEYS = ("task", "reward_loss", "cpu_preset")
+EVAL_KEYS = ("task", "reward_loss", "cpu_preset", "done_head")
 
 
 # Settings of agents trained by benchmarks/experiments/gw_dreamer_experiments.py, at the values that make
@@ -1317,7 +1347,6 @@ EXPERIMENT_KEYS = {
     "zero_init": False,
     "z_source": "gw",
     "wm_residual": False,
-    "done_head": True,
 }
 
 
@@ -1326,6 +1355,8 @@ SCRIPT = {
     "kind": "gw_dreamer",  # the kind recorded in its agent checkpoints
     "train": "python gw_dreamer.py --env {env}",  # the command that trains one
     "fingerprint": "gw_fingerprint",  # the checkpoint entry that identifies the frozen weights
+    # checkpoints saved before --done-head existed record no "on" / "off" (convert_checkpoint.py adds it)
+    "older_layout": lambda ckpt: not isinstance(ckpt["args"].get("done_head"), str),
     "eval_keys": lambda args: EVAL_KEYS,
     "experiments": EXPERIMENT_KEYS,
     "video": lambda run: dream_filmstrip(run.agent, run.frozen, run.args, 16, seed=10**6),
@@ -1364,7 +1395,7 @@ RANGES = {
 
 def script_checks(args: Args) -> None:
     """The replay holds a whole sequence per environment, the run makes at least one update, and rewards
-    are offset only where episodes never end."""
+    are offset and the done head left out only where episodes never end."""
     need = (args.batch_length + 1) * args.num_envs
     rule = f"must hold a replayed sequence (--batch-length + 1 entries) per environment: at least {need}"
     require(args.buffer_size >= need, "buffer_size", args.buffer_size, rule)
@@ -1373,6 +1404,8 @@ def script_checks(args: Args) -> None:
     require(ok, "learning_starts", args.learning_starts, rule)
     rule = "is for RoboDesk, whose episodes never end: where they end it changes the best policy"
     require(args.env == "robodesk" or args.reward_offset == 0, "reward_offset", args.reward_offset, rule)
+    rule = "is for RoboDesk, whose episodes never end early: Simple Shapes episodes end at the goal"
+    require(args.env == "robodesk" or args.done_head == "on", "done_head", args.done_head, rule)
     rule = f"must be below --batch-length {args.batch_length}: each start needs K replayed steps after it"
     require(args.wm_open_loop < args.batch_length, "wm_open_loop", args.wm_open_loop, rule)
     rule = "is for continuous actions (RoboDesk)"
@@ -1865,7 +1898,8 @@ def load_agent_checkpoint(path: Path, args, fingerprint: float) -> dict:
     ckpt = read_checkpoint(path, train)
     if ckpt.get("kind") != kind:
         raise UsageError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected a {kind} agent")
-    if "return_scale" in ckpt.get("state", {}):  # the layout in which the loop state held the return scale
+    # an older version's layout: the loop state held the return scale, or the script's own test says so
+    if "return_scale" in ckpt.get("state", {}) or SCRIPT.get("older_layout", lambda ckpt: False)(ckpt):
         raise UsageError(
             f"{path} has the layout of an older version: convert it with `python "
             f"benchmarks/experiments/convert_checkpoint.py {path}`"

@@ -1261,7 +1261,8 @@ def load_agent_checkpoint(path: Path, args, fingerprint: float) -> dict:
     ckpt = read_checkpoint(path, train)
     if ckpt.get("kind") != kind:
         raise UsageError(f"{path} holds a {ckpt.get('kind')!r} checkpoint, expected a {kind} agent")
-    if "return_scale" in ckpt.get("state", {}):  # the layout in which the loop state held the return scale
+    # an older version's layout: the loop state held the return scale, or the script's own test says so
+    if "return_scale" in ckpt.get("state", {}) or SCRIPT.get("older_layout", lambda ckpt: False)(ckpt):
         raise UsageError(
             f"{path} has the layout of an older version: convert it with `python "
             f"benchmarks/experiments/convert_checkpoint.py {path}`"

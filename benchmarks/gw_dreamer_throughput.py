@@ -6,7 +6,7 @@ FLOPs to the paper's criteria under both readings of where dreams start, and act
     python benchmarks/gw_dreamer_throughput.py                      # both envs, both readings
     python benchmarks/gw_dreamer_throughput.py --envs simple_shapes --device cuda
     python benchmarks/gw_dreamer_throughput.py --envs robodesk --cpu-preset --imag-from last \
-        --no-done-head --wm-open-loop-stride 32 --batch-size 28     # a faster CPU candidate
+        --done-head on --wm-open-loop-stride 16 --batch-size 32     # the earlier CPU preset
 
 The paper's FLOPs table gives 5.41e15 RL training FLOPs for GW-Dreamer on RoboDesk push_green until its
 criterion at about 200,000 environment steps; the lines "FLOPs to the criterion" set each reading next to
@@ -17,13 +17,13 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch
 import tyro
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-sys.path.insert(0, str(Path(__file__).resolve().parent / "experiments"))
 import gw_dreamer as G  # noqa: E402
 
 
@@ -49,8 +49,8 @@ class Args:
     """replayed sequences per update (default: the run's)"""
     wm_open_loop_stride: int | None = None
     """replayed entries between two starts of the open-loop term (default: the run's)"""
-    no_done_head: bool = False
-    """measure benchmarks/experiments/gw_dreamer_experiments.py --no-done-head (RoboDesk)"""
+    done_head: Literal["on", "off"] | None = None
+    """with or without the world model's done head (default: the run's)"""
 
 
 def random_encoder(env: str, width: int) -> G.FrozenEncoder:
@@ -69,18 +69,14 @@ def random_encoder(env: str, width: int) -> G.FrozenEncoder:
 
 
 def time_updates(env: str, a: Args, **overrides) -> dict:
-    for k in ("batch_size", "wm_open_loop_stride"):
+    for k in ("batch_size", "wm_open_loop_stride", "done_head"):
         if getattr(a, k) is not None:
             overrides[k] = getattr(a, k)
-    make_agent = G.Agent
-    if a.no_done_head:  # the experiment's world model: no done head, dreams continue with c = 1
-        if env != "robodesk":
-            raise SystemExit("--no-done-head is a RoboDesk experiment: give --envs robodesk")
-        import gw_dreamer_experiments as X
-
-        make_agent = X.experiment_agent(X.Args(env=env, cpu_preset=a.cpu_preset, done_head=False))
     args = G.Args(env=env, cpu_preset=a.cpu_preset, **overrides).resolve()
-    agent = make_agent(env, G.ENV_SPECS[env]["z"], args.reward_loss, cpu_preset=a.cpu_preset).to(a.device)
+    if args.done_head == "off" and env != "robodesk":
+        raise SystemExit("--done-head off is for RoboDesk (no episode ends early there): --envs robodesk")
+    z_dim, done_head = G.ENV_SPECS[env]["z"], args.done_head == "on"
+    agent = G.Agent(env, z_dim, args.reward_loss, cpu_preset=a.cpu_preset, done_head=done_head).to(a.device)
     counts = {k: sum(p.numel() for p in getattr(agent, k).parameters()) for k in ("wm", "actor", "critic")}
     opts = G.make_optimizers(agent, args)
     n_act = G.SIZES[env]["actions"]

@@ -105,6 +105,12 @@ class Args:
     setting (part 4's reference; the same for every checkpoint)"""
 
 
+def has_done_head(ck: dict) -> bool:
+    """Whether an agent checkpoint's world model has a done head (--done-head on), read from its weights:
+    a checkpoint saved before the flag existed does not record it."""
+    return any(k.startswith("wm.done_head.") for k in ck["agent"])
+
+
 @torch.no_grad()
 def saturation(path: str, sequences: int, seed: int) -> dict:
     ck = torch.load(path, weights_only=False, map_location="cpu")
@@ -112,7 +118,9 @@ def saturation(path: str, sequences: int, seed: int) -> dict:
         raise SystemExit(f"error: {path} is not a gw_dreamer.py RoboDesk agent checkpoint")
     args = G.Args(**{k: v for k, v in ck["args"].items() if k in G.Args.__dataclass_fields__}).resolve()
     z_dim = ck["replay"]["z"].shape[-1]
-    agent = G.Agent("robodesk", z_dim, args.reward_loss, args.return_norm_decay, args.cpu_preset)
+    agent = G.Agent(
+        "robodesk", z_dim, args.reward_loss, args.return_norm_decay, args.cpu_preset, has_done_head(ck)
+    )
     agent.load_state_dict(ck["agent"])
     replay = G.Replay(args.buffer_size, args.num_envs, z_dim, G.SIZES["robodesk"]["actions"], seed)
     state = ck["replay"] | {"rng": np.random.default_rng(seed).bit_generator.state}
@@ -240,7 +248,8 @@ def agent_in_simulator(path: str, task: str | None = None):
     ck = torch.load(path, weights_only=False, map_location="cpu")
     args = G.Args(**{k: v for k, v in ck["args"].items() if k in G.Args.__dataclass_fields__}).resolve()
     encoder, _ = G.load_frozen(args, torch.device("cpu"))
-    agent = G.Agent("robodesk", encoder.z_dim, args.reward_loss, args.return_norm_decay, args.cpu_preset)
+    z_dim, done_head = encoder.z_dim, has_done_head(ck)
+    agent = G.Agent("robodesk", z_dim, args.reward_loss, args.return_norm_decay, args.cpu_preset, done_head)
     agent.load_state_dict(ck["agent"])
     env = RoboDeskEnv(
         task=task or args.task, render_quality=args.render_quality, episode_length=args.episode_length

@@ -163,10 +163,13 @@ def assert_episodes_separated(replay: dict) -> None:
 
 def previous_layout(src: Path, dst: Path) -> None:
     """``src`` rewritten as agent checkpoints were saved before the return scale became a module of the
-    agent (a float ``return_scale`` in the loop state, no ``return_scale.*`` buffers)."""
+    agent (a float ``return_scale`` in the loop state, no ``return_scale.*`` buffers) and before
+    GW-Dreamer's --done-head flag existed."""
     ck = torch.load(src, weights_only=False)
     ck["state"]["return_scale"] = float(ck["agent"].pop("return_scale.ema"))
     del ck["agent"]["return_scale.count"]
+    if ck["kind"] in ("gw_dreamer", "gw_dreamer_e2e"):  # nor the --done-head flag
+        del ck["args"]["done_head"]
     torch.save(ck, dst)
 
 
@@ -179,7 +182,9 @@ def refused_then_converted(run, old: Path) -> None:
         run()
     out = run_script("benchmarks/experiments/convert_checkpoint.py", old.parent, str(old))
     assert "converted" in out and old.with_name(old.name + ".old").is_file()
-    assert "return_scale" not in torch.load(old, weights_only=False)["state"]
+    converted = torch.load(old, weights_only=False)
+    assert "return_scale" not in converted["state"]
+    assert converted["args"].get("done_head", "on") == "on"  # the flag's value the weights show
 
 
 def run_pretrain(tmp_path: Path, *extra: str) -> str:

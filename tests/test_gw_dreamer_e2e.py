@@ -176,15 +176,17 @@ def test_robodesk_sees_the_images_of_its_vaes(pretrained_robodesk):
 
 
 def test_robodesk_cpu_preset_trains_with_gw_dreamers_preset_settings(pretrained_robodesk, monkeypatch):
-    """--cpu-preset on RoboDesk takes gw_dreamer.py's replay value loss, open-loop world-model loss and
-    exploration noise (the paper's settings have none); every update computes both losses, and every
-    collected action after the random ones goes through the noise."""
+    """--cpu-preset on RoboDesk takes gw_dreamer.py's replay value loss, open-loop world-model loss,
+    exploration noise and world model without a done head (the paper's settings have none of them and a
+    done head); every update computes both losses and no done loss, and every collected action after the
+    random ones goes through the noise."""
     import gw_dreamer as G
 
-    preset = ("critic_replay_coef", "wm_open_loop", "wm_open_loop_stride", "explore_noise")
+    preset = ("critic_replay_coef", "wm_open_loop", "wm_open_loop_stride", "explore_noise", "done_head")
     cpu, gw_cpu = (m.Args(env="robodesk", cpu_preset=True).resolve() for m in (E, G))
-    assert [getattr(cpu, k) for k in preset] == [getattr(gw_cpu, k) for k in preset] == [0.3, 10, 16, 0.3]
-    assert [getattr(E.Args(env="robodesk").resolve(), k) for k in preset] == [0.0, 0, 16, 0.0]
+    assert [getattr(cpu, k) for k in preset] == [getattr(gw_cpu, k) for k in preset]
+    assert [getattr(cpu, k) for k in preset] == [0.3, 10, 32, 0.3, "off"]
+    assert [getattr(E.Args(env="robodesk").resolve(), k) for k in preset] == [0.0, 0, 16, 0.0, "on"]
     taken, real_explore = [], E.explore
     monkeypatch.setattr(E, "explore", lambda a, args, t: taken.append(real_explore(a, args, t)) or taken[-1])
     outs, real_update = [], E.train_update
@@ -195,6 +197,7 @@ def test_robodesk_cpu_preset_trains_with_gw_dreamers_preset_settings(pretrained_
     E.main(tiny_agent_args(E, pretrained_robodesk, **run))
     assert len(taken) == (240 - 200) // 4 and len(outs) == 5
     assert all({"loss_z_open", "loss_critic_replay"} <= set(out) for out in outs)
+    assert all(float(out["loss_d"]) < 1e-12 for out in outs)  # no done head: d = 0 is certain
 
 
 # --------------------------------------------------------------------------------------------------

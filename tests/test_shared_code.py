@@ -40,7 +40,7 @@ SHARED = {
     **dict.fromkeys(
         "Actor Critic RewardDecoder WorldModel SIZES dream_starts schedule actor_grad world_model_loss"
         " actor_critic_loss dream_loss world_model_loss_open_loop open_loop_loss replay_critic_loss explore"
-        " PAPER_OFF CPU_TABLE"
+        " PAPER_OFF PAPER_ON NEVER_ENDS CPU_TABLE"
         " updates_due mlp final_observations imagine run_name finish".split(),
         (GW, E2E),
     ),

@@ -9,7 +9,6 @@ checkpoints and the logs are gw_dreamer.py's.
     python benchmarks/experiments/gw_dreamer_experiments.py --ac-input hz --eval-only --checkpoint PATH
     python benchmarks/experiments/gw_dreamer_experiments.py --env robodesk --cpu-preset --wm-open-loop 10
     python benchmarks/experiments/gw_dreamer_experiments.py --env robodesk --cpu-preset --wm-residual
-    python benchmarks/experiments/gw_dreamer_experiments.py --env robodesk --cpu-preset --no-done-head
 
 Runs are named like gw_dreamer.py's with one suffix per experiment (``_hz``, ``_sgz``, ``_zinit``,
 ``_attrz``, ``_noslope``, ``_ol10``, ``_rec0.5``, ``_res``, ``_nodone``, ``_noise0.3``,
@@ -60,10 +59,6 @@ class Args(G.Args):
     """N > 0: gw_dreamer.py's --explore-noise falls linearly from its value at the first frame to 0 at
     frame N (0: constant), so the training episodes that decide the criterion late in a run are the
     policy's own"""
-    done_head: bool = True
-    """--no-done-head (RoboDesk): the world model has no done head and its dreams continue with c = 1.
-    RoboDesk never ends an episode early (only the step limit truncates it), so the head can only learn
-    that nothing ends; without it a --cpu-preset update takes 13% fewer FLOPs"""
     z_source: Literal["gw", "attributes"] = "gw"
     """gw: the paper's z_t. attributes (Simple Shapes only): z_t is the true attribute vector (its first
     10 entries, clipped to [-1, 1]) instead of the GW's, which tests the world model and actor-critic
@@ -80,7 +75,7 @@ def suffix(args: Args) -> str:
         + (f"_ol{args.wm_open_loop}" if args.wm_open_loop else "")
         + (f"_rec{args.recent_fraction:g}" if args.recent_fraction else "")
         + ("_res" if args.wm_residual else "")
-        + ("" if args.done_head else "_nodone")
+        + ("_nodone" if args.done_head == "off" else "")
         + (f"_noise{args.explore_noise:g}" if args.explore_noise else "")
         + (f"d{args.explore_noise_decay}" if args.explore_noise and args.explore_noise_decay else "")
     )
@@ -119,7 +114,7 @@ def experiment_agent(args: Args) -> type[G.Agent]:
         def heads(self, h_next):
             z_next = self.z_head(h_next)
             feat = torch.cat([h_next, z_next.detach()], -1)
-            return z_next, self.reward_head(feat), self.done_head(feat).squeeze(-1)
+            return z_next, self.reward_head(feat), self.done_logit(feat)
 
     class ResidualWorldModel(G.WorldModel):
         """--wm-residual. Its state is [h, z_t]: step keeps the z_t it read beside the GRU's h_{t+1}, so
@@ -133,24 +128,15 @@ def experiment_agent(args: Args) -> type[G.Agent]:
             h, z_t = state[..., : self.gru.hidden_size], state[..., self.gru.hidden_size :]
             z_next = torch.tanh(self.z_head[:-1](h) + torch.atanh(z_t.clamp(-0.999, 0.999)))
             feat = torch.cat([h, z_next], -1)
-            return z_next, self.reward_head(feat), self.done_head(feat).squeeze(-1)
-
-    class NoDoneWorldModel(G.WorldModel):
-        """--no-done-head: a done logit of NEVER_ENDS for every state (continuation 1 - 1e-13, BCE loss
-        1e-13 against d = 0, no parameters)."""
-
-        def heads(self, h_next):
-            z_next = self.z_head(h_next)
-            feat = torch.cat([h_next, z_next], -1)
-            return z_next, self.reward_head(feat), torch.full_like(feat[..., 0], NEVER_ENDS)
+            return z_next, self.reward_head(feat), self.done_logit(feat)
 
     class ConstantInputCritic(G.Critic):
         def forward(self, h):
             return self.net(h.detach())
 
     class ExperimentAgent(G.Agent):
-        def __init__(self, env, z_dim, reward_loss, return_norm_decay=0.99, cpu_preset=False):
-            super().__init__(env, z_dim, reward_loss, return_norm_decay, cpu_preset)
+        def __init__(self, env, z_dim, reward_loss, return_norm_decay=0.99, cpu_preset=False, done_head=True):
+            super().__init__(env, z_dim, reward_loss, return_norm_decay, cpu_preset, done_head)
             if args.ac_input == "hz":  # the actor and critic read z_t beside h_t
                 s = G.sizes_of(env, cpu_preset)
                 ac_in = s["gru_hidden"] + z_dim
@@ -162,9 +148,6 @@ def experiment_agent(args: Args) -> type[G.Agent]:
             if args.wm_residual:
                 self.wm.__class__ = ResidualWorldModel
                 self.wm.hidden = self.wm.gru.hidden_size + z_dim
-            if not args.done_head:
-                del self.wm.done_head
-                self.wm.__class__ = NoDoneWorldModel
             if not args.value_slope:
                 self.critic.__class__ = ConstantInputCritic
             if args.zero_init:  # DreamerV3: reward and value predictions start at 0
@@ -178,9 +161,6 @@ def experiment_agent(args: Args) -> type[G.Agent]:
             return torch.cat([h, z], -1) if args.ac_input == "hz" else h
 
     return ExperimentAgent
-
-
-NEVER_ENDS = -30.0  # the done logit of --no-done-head: sigmoid(-30) = 9e-14
 
 
 def decaying_explore(a: torch.Tensor, args: Args, env_steps: int) -> torch.Tensor:
@@ -208,8 +188,6 @@ def main(args: Args) -> dict:
     )
     if args.explore_noise_decay and not args.resolve().explore_noise:
         raise G.UsageError("--explore-noise-decay needs --explore-noise")
-    if not args.done_head and args.env != "robodesk":
-        raise G.UsageError("--no-done-head is a RoboDesk experiment (Simple Shapes episodes end at the goal)")
     if args.z_source == "attributes" and args.env != "simple_shapes":
         raise G.UsageError(
             "--z-source attributes is a Simple Shapes control (RoboDesk attributes are unbounded)"

@@ -172,7 +172,8 @@ def one_step_by_age(
 ) -> str:
     """One-step z error (summed over z) / end-effector error (cm) of ``ck_model``'s world model along the
     first stream of ``ck_data``'s replay, by the entries' position in it."""
-    agent = G.Agent("robodesk", encoder.z_dim, "twohot", 0.99, True)
+    done_head = any(k.startswith("wm.done_head.") for k in ck_model["agent"])
+    agent = G.Agent("robodesk", encoder.z_dim, "twohot", 0.99, True, done_head)
     agent.load_state_dict(ck_model["agent"])
     rep = ck_data["replay"]
     n = min(int(rep["count"][0]), rep["z"].shape[1])
