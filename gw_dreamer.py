@@ -273,7 +273,7 @@ TABLE = {
 # --cpu-preset on RoboDesk: the smaller networks (CPU_SIZES) with the batch, replay critic loss, open-loop
 # world-model loss and exploration noise that made them reach the criterion, and no done head (RoboDesk's
 # episodes never end early); the departures and their evidence: docs/paper_readings.md. 200,000 frames
-# take about 2.4 h on one core beside another run (docs/gw_dreamer.md#robodesk-on-a-cpu). An evaluation's
+# take about 2.3 h on one core beside another run (docs/gw_dreamer.md#robodesk-on-a-cpu). An evaluation's
 # 10 episodes are 20,000 frames of acting, so it evaluates every 100,000.
 CPU_TABLE = {
     "robodesk": dict(
@@ -1550,7 +1550,7 @@ def start_run(args: Args, encoder: FrozenEncoder, agent: Agent, paths: dict, age
         print(
             f"[{TAG}] the paper's sizes on a CPU: about {PAPER_SIZE_CPU_S} s per update on one core, so "
             f"{args.total_steps:,} frames take about {hours:.0f} h; --cpu-preset trains 200,000 frames in "
-            "about 3.4 h beside another run (docs/gw_dreamer.md)"
+            "about 2.3 h beside another run (docs/gw_dreamer.md)"
         )
     return run
 

@@ -11,7 +11,7 @@
 #
 # Runs JOBS (default 2) trainings at a time, each with --torch-threads 1. A seed of
 # `gw_dreamer.py --env robodesk --cpu-preset` runs to the criterion or 200,000 frames: up to about
-# 2.4-3 h with two side by side on a 2-core AMD EPYC CPU with AVX-512, about 7.5 h without (torch 2.13.0,
+# 2.3-3 h with two side by side on a 2-core AMD EPYC CPU with AVX-512, about 7.5 h without (torch 2.13.0,
 # docs/gw_dreamer.md#robodesk-on-a-cpu), then
 # its modality ablation (10 episodes each with both modalities, without vision, without attributes:
 # about 3 min each).
