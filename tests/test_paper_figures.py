@@ -76,6 +76,10 @@ def test_figures_and_table_from_event_files(tmp_path):
     assert (
         "GW-PPO" not in table.split("Cut short")[0] and "GW-PPO seed 1" in table
     )  # cut: listed, not counted
+    # the paper's own criterion: 75% of the highest smoothed return (seed 1's 0.8), reached by seed 1
+    # when 7 of its last 10 episodes score 0.8 (0.1 + 0.07 x 7 >= 0.6): the 17th episode, 1,700 steps
+    assert "(0.80): 0.60" in table and "| GW-Dreamer | 1 / 3 | 1,700 |" in table
+    assert "| VAE-PPO | 0 / 1 | – |" in table and "| GW-PPO | 0" not in table  # cut runs left out
     body = table.split("\n", 4)[4]  # the table under its title and source line
     assert "someone" not in table and body.strip() in printed
     with open(res / "simple_shapes_runs.csv", newline="") as f:
@@ -125,6 +129,8 @@ def test_robodesk_figures_carry_the_task_and_the_70_percent_criterion(tmp_path):
         assert (out / png).read_bytes().startswith(PNG), png
     assert not (out / "gw_figure2.png").exists()  # Figure 2 is Simple Shapes'
     assert "| GW-Dreamer | 1 / 2 | 30,000 | 3.00e+13 | ≈ 200,000 |" in printed
+    # the paper's 70% of the highest smoothed return (0.8): 0.56, at the 22nd episode (0.1 + 0.07 x 7)
+    assert "70% of the highest smoothed return" in printed and "| GW-Dreamer | 1 / 2 | 44,000 |" in printed
     with open(res / "robodesk_runs.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     assert [(r["seed"], r["task"], r["status"]) for r in rows] == [
@@ -158,6 +164,8 @@ def test_robodesk_tasks_the_gw_saw_and_did_not_and_the_papers_flops_table(tmp_pa
     )
     # Figure 3's table is push_green's alone: the other tasks' runs do not enter it
     assert "| GW-Dreamer | 1 / 2 | 30,000 | 3.00e+13 | ≈ 200,000 |" in printed
+    # the paper's 70% of the highest smoothed return (0.8): 0.56, at the 22nd episode (0.1 + 0.07 x 7)
+    assert "70% of the highest smoothed return" in printed and "| GW-Dreamer | 1 / 2 | 44,000 |" in printed
     assert "| Dreamer | 1 / 1 | 100,000 | 1.00e+14 | ≈ 800,000 |" in printed
     for png in ("robodesk_tasks_seen.png", "robodesk_tasks_unseen.png"):
         assert (out / png).read_bytes().startswith(PNG), png
