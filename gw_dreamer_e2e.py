@@ -1625,6 +1625,8 @@ def start_run(args: Args, vaes: FrozenVAEs, agent: Agent, paths: dict, agent_pat
     if not args.resume:
         table = "\n".join(f"|{k}|{v}|" for k, v in vars(args).items())
         writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + table)
+    # each part of a run logs its length, which --resume may change (benchmarks/paper_figures.py reads it)
+    writer.add_scalar("charts/total_steps", args.total_steps, state.env_steps)
     ref = reference_returns(args)
     run = Run(args, vaes, agent, opts, replay, state, writer, agent_path, paths, model, ref)
     run.steps0 = state.env_steps

@@ -869,6 +869,8 @@ def start_run(
     if not args.resume:
         table = "\n".join(f"|{k}|{v}|" for k, v in vars(args).items())
         writer.add_text("hyperparameters", "|param|value|\n|-|-|\n" + table)
+    # each part of a run logs its length, which --resume may change (benchmarks/paper_figures.py reads it)
+    writer.add_scalar("charts/total_steps", args.total_steps, state.env_steps)
     ref = reference_returns(args)
     run = Run(args, observer, agent, optimizer, reward_norm, state, writer, agent_path, frozen, ref)
     run.steps0 = state.env_steps

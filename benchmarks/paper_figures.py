@@ -178,9 +178,12 @@ def read_runs(folder: Path, env: str = "simple_shapes") -> tuple[list[dict], lis
         if "hyperparameters/text_summary" in acc.Tags()["tensors"]:
             hyper = acc.Tensors("hyperparameters/text_summary")[0].tensor_proto.string_val[0].decode()
         total = re.search(r"\|total_steps\|(\d+)\|", hyper)
+        total = int(total.group(1)) if total else None
+        if "charts/total_steps" in tags:  # logged by every part of a run: the last part's --total-steps
+            total = int(acc.Scalars("charts/total_steps")[-1].value)
         last = max(e.step for e in episodes)
         status = "reached" if crit is not None else "not reached"
-        if crit is None and total and last < int(total.group(1)) * 0.95:
+        if crit is None and total and last < total * 0.95:
             status = "cut"  # stopped well before its --total-steps (PPO ends at whole rollouts)
         clock = acc.Scalars(
             "charts/train_flops" if "charts/train_flops" in tags else "charts/normalised_return"

@@ -150,6 +150,16 @@ def assert_actions_read_dreamt_states_as_constants(imagine, agent, *starts) -> N
     assert torch.autograd.grad(taken[1].sum(), taken[0], allow_unused=True)[0] is None
 
 
+def logged_totals(tmp: Path, prefix: str) -> list[tuple[int, int]]:
+    """(env step, --total-steps) of each part of the one run under tmp/runs named ``prefix``...: every
+    start logs the run's length, which --resume may change (benchmarks/paper_figures.py reads the last)."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    (run,) = (tmp / "runs").glob(prefix + "*")
+    acc = EventAccumulator(str(run), size_guidance={"scalars": 0}).Reload()
+    return [(e.step, int(e.value)) for e in acc.Scalars("charts/total_steps")]
+
+
 def assert_episodes_separated(replay: dict) -> None:
     """In a saved GW-Dreamer replay (streams not yet wrapped), every episode start but a stream's first
     entry follows an entry marked last, so no world-model transition crosses from one episode into the

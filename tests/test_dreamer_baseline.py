@@ -20,6 +20,7 @@ from conftest import (
     ROOT,
     assert_actions_read_dreamt_states_as_constants,
     interrupt_run,
+    logged_totals,
     previous_layout,
     record_calls,
     refused_then_converted,
@@ -103,6 +104,7 @@ def test_resume_continues_the_saved_run(ss_run):
     assert "resuming" in log and "at env step 300" in log
     ck = torch.load(agent, weights_only=False)
     assert ck["state"]["env_steps"] == 400 and ck["state"]["updates"] == (400 - 100) * 16 // 32
+    assert logged_totals(tmp, "dreamer_raw_") == [(0, 300), (300, 400)]
 
 
 def test_eval_only_with_each_drop_and_size_mismatch(ss_run, pretrained):

@@ -20,6 +20,7 @@ from conftest import (
     assert_actions_read_dreamt_states_as_constants,
     assert_episodes_separated,
     interrupt_run,
+    logged_totals,
     previous_layout,
     record_calls,
     refused_then_converted,
@@ -84,6 +85,7 @@ def test_resume_continues_the_saved_run(ss_run):
     ck = torch.load(agent, weights_only=False)
     assert ck["state"]["env_steps"] == 400 and ck["state"]["updates"] == (400 - 100) // 10
     assert_episodes_separated(ck["replay"])  # the episode cut by the save at 250 is closed
+    assert logged_totals(tmp, "gw_dreamer_gw_simple_shapes_s1") == [(0, 250), (250, 400)]
 
 
 def test_a_checkpoint_of_the_previous_layout_is_refused_then_converted_and_resumes_to_the_same_run(

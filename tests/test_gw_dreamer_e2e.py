@@ -12,6 +12,7 @@ from conftest import (
     assert_actions_read_dreamt_states_as_constants,
     assert_episodes_separated,
     interrupt_run,
+    logged_totals,
     previous_layout,
     record_calls,
     refused_then_converted,
@@ -92,6 +93,7 @@ def test_resume_continues_the_saved_run(ss_run):
     ck = torch.load(agent, weights_only=False)
     assert ck["state"]["env_steps"] == 400 and ck["state"]["gw_updates"] == 2 * (400 - 100) // 10
     assert_episodes_separated(ck["replay"])  # the episode cut by the save at 250 is closed
+    assert logged_totals(tmp, "gw_dreamer_e2e_gw_") == [(0, 250), (250, 400)]
 
 
 def test_eval_only_with_each_drop_and_the_vae_check(ss_run, pretrained, tmp_path):

@@ -30,11 +30,12 @@ def fake_run(
     flops_per_step=1e9,
     drops=None,
     pause_at=None,
+    resumed_total=None,
 ):
     """A run as the agent scripts log it: one normalised return per episode, the criterion step once,
     cumulative FLOPs every 1,000 steps, the settings table, and --eval-only outputs per dropped modality.
     Its clock runs a minute per 1,000 steps, with a 2-hour pause (a resumed run's two parts) at
-    ``pause_at`` steps."""
+    ``pause_at`` steps, after which a --resume part with --total-steps ``resumed_total`` logs it."""
     w = SummaryWriter(folder / name)
     w.add_text("hyperparameters", f"|param|value|\n|-|-|\n|total_steps|{total}|")
     last = step_every * len(returns)
@@ -48,6 +49,9 @@ def fake_run(
         w.add_scalar("charts/normalised_return", r, i * step_every, walltime=clock(i * step_every))
     if criterion is not None:
         w.add_scalar("charts/criterion_step", criterion, criterion)
+    if resumed_total is not None:
+        w.add_scalar("charts/total_steps", total, 0)
+        w.add_scalar("charts/total_steps", resumed_total, pause_at)
     w.close()
     for drop, norm in (drops or {}).items():
         line = f"[eval] drop={drop}: return -1.00 ± 0.50 (s.e.m., 50 episodes), normalised {norm:.3f}\n"
@@ -158,17 +162,23 @@ def test_robodesk_tasks_the_gw_saw_and_did_not_and_the_papers_flops_table(tmp_pa
     fake_run(runs, "gw_dreamer_gw_robodesk_open_slide_s1", [0.9] * 30, 2000, 40000, 60000)  # seen: 4e13
     fake_run(runs, "gw_dreamer_gw_robodesk_push_red_s1", [0.2] * 30, 2000, None, 60000)  # unseen, missed
     fake_run(runs, "dreamer_raw_2m_robodesk_push_green_s1", [0.9] * 60, 2000, 100000, 120000)
+    # resumed with its --total-steps lowered from 800,000 to the 60,000 it ran: run in full, not reached;
+    # the same run without the resumed part's record stopped far before its 800,000: cut
+    dreamer = "dreamer_raw_2m_robodesk_push_green"
+    fake_run(runs, f"{dreamer}_s2", [0.1] * 30, 2000, None, 800000, pause_at=30000, resumed_total=60000)
+    fake_run(runs, f"{dreamer}_s3", [0.1] * 30, 2000, None, 800000, pause_at=30000)
     out = tmp_path / "fig"
     printed = run_script(
         "benchmarks/paper_figures.py", tmp_path, "--env", "robodesk", "--runs", str(runs), "--out", str(out)
     )
     # Figure 3's table is push_green's alone: the other tasks' runs do not enter it
     assert "| GW-Dreamer | 1 / 2 | 30,000 | 3.00e+13 | ≈ 200,000 |" in printed
-    assert "| Dreamer | 1 / 1 | 100,000 | 1.00e+14 | ≈ 800,000 |" in printed
+    assert "| Dreamer | 1 / 2 | 100,000 | 1.00e+14 | ≈ 800,000 |" in printed
+    assert "Cut short, not counted: Dreamer seed 3." in printed
     # the paper's relative criterion over all models: 70% of Dreamer's 0.9, reached by GW-Dreamer at its
     # 23rd episode (0.1 + 0.07 x 8 >= 0.63), by Dreamer at its 10th
     assert "(0.90): 0.63" in printed and "| GW-Dreamer | 1 / 2 | 46,000 |" in printed
-    assert "| Dreamer | 1 / 1 | 20,000 |" in printed
+    assert "| Dreamer | 1 / 2 | 20,000 |" in printed
     for png in ("robodesk_tasks_seen.png", "robodesk_tasks_unseen.png"):
         assert (out / png).read_bytes().startswith(PNG), png
     assert "task panels of open_slide, push_green, push_red;" in printed
@@ -189,7 +199,7 @@ def test_robodesk_tasks_the_gw_saw_and_did_not_and_the_papers_flops_table(tmp_pa
         " | not reached (0 of 1 tasks reached: none; not reached: push_red) |"
     ) in printed
     assert (
-        "| Dreamer | N/A | N/A | 1.000e+14 (1 / 1 seeds) | 1.000e+14 (1 of 5 tasks reached: push_green) | X |"
+        "| Dreamer | N/A | N/A | 1.000e+14 (1 / 2 seeds) | 1.000e+14 (1 of 5 tasks reached: push_green) | X |"
         in (printed)
     )
 

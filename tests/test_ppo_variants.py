@@ -4,7 +4,7 @@ ablation, GAE, frame stacking, reward normalisation, errors."""
 import numpy as np
 import pytest
 import torch
-from conftest import record_calls, run_script
+from conftest import logged_totals, record_calls, run_script
 
 import ppo_variants as PPO
 
@@ -87,6 +87,7 @@ def test_resume_continues_the_saved_run(ss_runs):
     assert "resuming" in log and "at env step 256" in log
     ck = torch.load(agent_path(tmp, "simple_shapes", "gw"), weights_only=False)
     assert ck["state"]["env_steps"] == 512 and ck["state"]["iteration"] == 4
+    assert logged_totals(tmp, "ppo_gw_") == [(0, 256), (256, 512)]
 
 
 def test_eval_only_with_each_drop(ss_runs, pretrained):
