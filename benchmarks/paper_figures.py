@@ -12,8 +12,9 @@ Writes to --out (docs/figures/), <env> being simple_shapes or robodesk:
 - <env>_flops.md: env steps and RL training FLOPs to the criterion per model, env steps to the paper's
   own criterion (a share of the highest smoothed return any run reached); on RoboDesk also the
   paper's FLOPs table (VAE, GW, RL on push_green, on the tasks the GW saw, on the tasks it did not);
-- robodesk_tasks_seen.png, robodesk_tasks_unseen.png: one panel per task (Figures 6 and 7), drawn when
-  the records hold runs on those tasks;
+- robodesk_tasks_seen.png, robodesk_tasks_unseen.png: one panel per task, the success count (steps of
+  the 500 in which the task's success criterion held) smoothed over 10 episodes (Figures 6 and 7), drawn
+  when the records hold runs on those tasks with success counts;
 - gw_figure2.png (Simple Shapes): the GW grid of Figure 2 (image, image of the attributes, translation,
   demi-cycle, fusion) from a Simple Shapes GW checkpoint (the bundled one by default).
 
@@ -75,9 +76,12 @@ ABLATION_FIELDS = "model setting seed drop episodes return_mean return_sem norma
 
 
 def fields(kind: str, env: str) -> list[str]:
-    """Columns of a record file: RoboDesk's add the task after the seed."""
+    """Columns of a record file: RoboDesk's add the task after the seed, and its curves each episode's
+    success count (steps of the 500 in which the task's success criterion held; Figures 6 and 7)."""
     cols = {"runs": RUN_FIELDS, "curves": CURVE_FIELDS, "ablation": ABLATION_FIELDS}[kind]
-    return cols if env == "simple_shapes" else [*cols[:3], "task", *cols[3:]]
+    if env == "simple_shapes":
+        return cols
+    return [*cols[:3], "task", *cols[3:]] + (["success_count"] if kind == "curves" else [])
 
 
 EVAL_LINE = re.compile(
@@ -163,10 +167,14 @@ def read_runs(folder: Path, env: str = "simple_shapes") -> tuple[list[dict], lis
         if "charts/normalised_return" not in tags:
             continue
         episodes = acc.Scalars("charts/normalised_return")
+        success = {}  # RoboDesk: logged with every training episode, at its step
+        if "charts/success_count" in tags:
+            success = {e.step: f"{e.value:g}" for e in acc.Scalars("charts/success_count")}
         curves += [
             dict(model=model, setting="default", seed=seed, env_step=e.step)
             | tag
             | dict(normalised_return=f"{e.value:.4f}")
+            | ({"success_count": success.get(e.step, "")} if success else {})
             for e in episodes
         ]
         crit = acc.Scalars("charts/criterion_step")[0].step if "charts/criterion_step" in tags else None
@@ -411,14 +419,19 @@ def robodesk_flops_table(runs: list[dict], setting: str, pre: dict[str, float], 
 # --------------------------------------------------------------------------------------------------
 # Figures
 # --------------------------------------------------------------------------------------------------
-def draw_curves(ax, curves: list[dict], runs: list[dict], setting: str, env: str) -> list[str]:
-    """Each model's smoothed normalised return on ``ax``, mean ± s.e.m. over its finished seeds."""
+def draw_curves(
+    ax, curves: list[dict], runs: list[dict], setting: str, env: str, column: str = "normalised_return"
+) -> list[str]:
+    """Each model's ``column`` (the normalised return, or RoboDesk's success count) smoothed over 10
+    episodes on ``ax``, mean ± s.e.m. over its finished seeds that recorded it."""
     drawn = []
     for label, _, _ in models(env):
         mine = [r for r in runs if r["model"] == label and r["setting"] == setting]
         done = {int(r["seed"]) for r in mine if r["status"] != "cut"}  # a cut run's curve is partial
         rows = [
-            r for r in curves if r["model"] == label and r["setting"] == setting and int(r["seed"]) in done
+            r
+            for r in curves
+            if r["model"] == label and r["setting"] == setting and int(r["seed"]) in done and r.get(column)
         ]
         seeds = sorted({int(r["seed"]) for r in rows})
         if not seeds:
@@ -429,7 +442,7 @@ def draw_curves(ax, curves: list[dict], runs: list[dict], setting: str, env: str
         for s in seeds:
             mine = [r for r in rows if int(r["seed"]) == s]
             steps = np.array([float(r["env_step"]) for r in mine])
-            rets = np.array([float(r["normalised_return"]) for r in mine])
+            rets = np.array([float(r[column]) for r in mine])
             per_seed.append(smoothed_on_grid(steps, rets, grid))
         y = np.array(per_seed)
         ok = np.isfinite(y).all(axis=0)  # where every seed has its first 10 episodes
@@ -438,10 +451,12 @@ def draw_curves(ax, curves: list[dict], runs: list[dict], setting: str, env: str
         reached = sum(
             1 for r in runs if r["model"] == label and r["setting"] == setting and r["status"] == "reached"
         )
-        line = ax.plot(grid[ok], mean, label=f"{label} ({reached}/{len(seeds)} reached)")[0]
+        drawn_of = f", {len(seeds)} drawn" if len(seeds) < len(done) else ""  # older records lack the column
+        line = ax.plot(grid[ok], mean, label=f"{label} ({reached}/{len(done)} reached{drawn_of})")[0]
         ax.fill_between(grid[ok], mean - sem, mean + sem, color=line.get_color(), alpha=0.2)
         drawn.append(label)
-    ax.axhline(CRITERION[env], color="k", ls="--", lw=1, label=f"criterion ({CRITERION[env]})")
+    if column == "normalised_return":
+        ax.axhline(CRITERION[env], color="k", ls="--", lw=1, label=f"criterion ({CRITERION[env]})")
     ax.set_xscale("log")
     ax.set_xlabel("env steps" if env == "simple_shapes" else "env steps (simulator frames)")
     return drawn
@@ -468,10 +483,15 @@ def plot_curves(
 def plot_tasks(
     curves: list[dict], runs: list[dict], setting: str, tasks: list[str], title: str, path: Path, caption: str
 ) -> list[str]:
-    """RoboDesk, one panel per task of ``tasks`` that has runs (Figures 6 and 7); the tasks drawn."""
+    """RoboDesk, one panel per task of ``tasks`` whose runs recorded success counts (Figures 6 and 7: the
+    paper's y-axis, smoothed here over 10 episodes, a tenth of a 200,000-frame run, where the paper's
+    runs of millions of frames take 100); the tasks drawn."""
     import matplotlib.pyplot as plt
 
-    tasks = [t for t in tasks if any(r["task"] == t and r["setting"] == setting for r in runs)]
+    counted = {r["task"] for r in curves if r["setting"] == setting and r.get("success_count")}
+    tasks = [
+        t for t in tasks if t in counted and any(r["task"] == t and r["setting"] == setting for r in runs)
+    ]
     if not tasks:
         return []
     cols = min(3, len(tasks))
@@ -479,14 +499,18 @@ def plot_tasks(
     fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.4 * rows), squeeze=False)
     for ax, task in zip(axes.flat, tasks, strict=False):
         of_task = [r for r in runs if r["task"] == task]
-        draw_curves(ax, [r for r in curves if r["task"] == task], of_task, setting, "robodesk")
+        of_curves = [r for r in curves if r["task"] == task]
+        draw_curves(ax, of_curves, of_task, setting, "robodesk", column="success_count")
         ax.set_title(task, fontsize=9)
         ax.xaxis.set_minor_formatter(plt.NullFormatter())  # narrow panels: label the decades only
-        ax.set_ylabel("normalised return")
-        ax.legend(fontsize=6, loc="lower right")
+        ax.set_ylim(0, 500)
+        ax.set_ylabel("success count (steps of 500)")
+        ax.legend(fontsize=6, loc="upper left")
     for ax in list(axes.flat)[len(tasks) :]:
         ax.axis("off")
-    fig.suptitle(f"RoboDesk, {title}\nsmoothed over 10 episodes, mean ± s.e.m. over seeds", fontsize=9)
+    fig.suptitle(
+        f"RoboDesk, {title}: success count\nsmoothed over 10 episodes, mean ± s.e.m. over seeds", fontsize=9
+    )
     fig.text(0.01, 0.01, caption, fontsize=7)
     fig.tight_layout(rect=(0, 0.03, 1, 1))
     fig.savefig(path, dpi=120)

@@ -31,11 +31,13 @@ def fake_run(
     drops=None,
     pause_at=None,
     resumed_total=None,
+    successes=None,
 ):
     """A run as the agent scripts log it: one normalised return per episode, the criterion step once,
     cumulative FLOPs every 1,000 steps, the settings table, and --eval-only outputs per dropped modality.
     Its clock runs a minute per 1,000 steps, with a 2-hour pause (a resumed run's two parts) at
-    ``pause_at`` steps, after which a --resume part with --total-steps ``resumed_total`` logs it."""
+    ``pause_at`` steps, after which a --resume part with --total-steps ``resumed_total`` logs it; RoboDesk
+    runs log ``successes`` (one success count per episode) beside the returns."""
     w = SummaryWriter(folder / name)
     w.add_text("hyperparameters", f"|param|value|\n|-|-|\n|total_steps|{total}|")
     last = step_every * len(returns)
@@ -47,6 +49,8 @@ def fake_run(
         w.add_scalar("charts/train_flops", k * flops_per_step, k, walltime=clock(k))
     for i, r in enumerate(returns, 1):
         w.add_scalar("charts/normalised_return", r, i * step_every, walltime=clock(i * step_every))
+        if successes is not None:
+            w.add_scalar("charts/success_count", successes[i - 1], i * step_every)
     if criterion is not None:
         w.add_scalar("charts/criterion_step", criterion, criterion)
     if resumed_total is not None:
@@ -121,9 +125,9 @@ def test_robodesk_figures_carry_the_task_and_the_70_percent_criterion(tmp_path):
     runs = tmp_path / "runs"
     drops = {"none": 0.75, "vision": 0.7, "attr": 0.65}
     # criterion at 30,000 frames (3e13 FLOPs); one seed not reached; a Simple Shapes run is not RoboDesk's
-    fake_run(
-        runs, "gw_dreamer_gw_robodesk_push_green_s1", [0.1] * 15 + [0.8] * 15, 2000, 30000, 60000, drops=drops
-    )
+    counts = list(range(0, 300, 10))
+    push = "gw_dreamer_gw_robodesk_push_green"
+    fake_run(runs, f"{push}_s1", [0.1] * 15 + [0.8] * 15, 2000, 30000, 60000, drops=drops, successes=counts)
     fake_run(runs, "gw_dreamer_gw_robodesk_push_green_s2", [0.3] * 30, 2000, None, 60000)
     fake_run(runs, "gw_dreamer_gw_simple_shapes_s1", [0.9] * 20, 100, 1000, 2000)
     out, res = tmp_path / "fig", tmp_path / "res"
@@ -146,8 +150,19 @@ def test_robodesk_figures_carry_the_task_and_the_70_percent_criterion(tmp_path):
             d: ("push_green", v) for d, v in drops.items()
         }
     with open(res / "robodesk_curves.csv", newline="") as f:
-        header = f.readline().strip().split(",")
-    assert header == ["model", "setting", "seed", "task", "env_step", "normalised_return"]
+        curves = list(csv.DictReader(f))
+    assert list(curves[0]) == [
+        "model",
+        "setting",
+        "seed",
+        "task",
+        "env_step",
+        "normalised_return",
+        "success_count",
+    ]
+    # each episode's success count at its step; a run that logged none has an empty column
+    assert [int(r["success_count"]) for r in curves if r["seed"] == "1"] == counts
+    assert {r["success_count"] for r in curves if r["seed"] == "2"} == {""}
     again = run_script(
         "benchmarks/paper_figures.py", tmp_path, "--env", "robodesk", "--results", str(res), "--out", str(out)
     )
@@ -157,10 +172,13 @@ def test_robodesk_figures_carry_the_task_and_the_70_percent_criterion(tmp_path):
 def test_robodesk_tasks_the_gw_saw_and_did_not_and_the_papers_flops_table(tmp_path):
     runs = tmp_path / "runs"
     push = "gw_dreamer_gw_robodesk_push_green"
-    fake_run(runs, f"{push}_s1", [0.1] * 15 + [0.8] * 15, 2000, 30000, 60000)  # 3e13 FLOPs to it
-    fake_run(runs, f"{push}_s2", [0.3] * 30, 2000, None, 60000)
-    fake_run(runs, "gw_dreamer_gw_robodesk_open_slide_s1", [0.9] * 30, 2000, 40000, 60000)  # seen: 4e13
-    fake_run(runs, "gw_dreamer_gw_robodesk_push_red_s1", [0.2] * 30, 2000, None, 60000)  # unseen, missed
+    n30 = [100] * 30
+    fake_run(runs, f"{push}_s1", [0.1] * 15 + [0.8] * 15, 2000, 30000, 60000, successes=n30)  # 3e13 FLOPs
+    fake_run(runs, f"{push}_s2", [0.3] * 30, 2000, None, 60000, successes=n30)
+    fake_run(runs, "gw_dreamer_gw_robodesk_open_slide_s1", [0.9] * 30, 2000, 40000, 60000, successes=n30)
+    fake_run(runs, "gw_dreamer_gw_robodesk_push_red_s1", [0.2] * 30, 2000, None, 60000, successes=n30)
+    # a seen task whose run logged no success count gets no panel (Figures 6 and 7 plot success counts)
+    fake_run(runs, "gw_dreamer_gw_robodesk_open_drawer_s1", [0.9] * 30, 2000, 40000, 60000)
     fake_run(runs, "dreamer_raw_2m_robodesk_push_green_s1", [0.9] * 60, 2000, 100000, 120000)
     # resumed with its --total-steps lowered from 800,000 to the 60,000 it ran: run in full, not reached;
     # the same run without the resumed part's record stopped far before its 800,000: cut
@@ -195,7 +213,7 @@ def test_robodesk_tasks_the_gw_saw_and_did_not_and_the_papers_flops_table(tmp_pa
     )
     assert (
         f"| GW-Dreamer | {pre['VAE']:.3e} | {pre['GW']:.3e} | 3.000e+13 (1 / 2 seeds)"
-        " | 7.000e+13 (2 of 5 tasks reached: open_slide, push_green)"
+        " | 1.100e+14 (3 of 5 tasks reached: open_drawer, open_slide, push_green)"
         " | not reached (0 of 1 tasks reached: none; not reached: push_red) |"
     ) in printed
     assert (
@@ -375,3 +393,40 @@ def test_a_stopped_reproduction_continues_with_resume(tmp_path):
         ["bash", script], cwd=work, capture_output=True, text=True, env=env | {"OUT": "x", "RESUME": "1"}
     )
     assert missing.returncode == 2 and "no reproduction to continue" in missing.stderr
+
+
+def test_robodesk_task_panels_plot_the_smoothed_success_count():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    # seed 1: 0 then 500 successes; seed 2: always 100; seed 3 recorded no success counts (older records)
+    def rows(seed, counts):
+        return [
+            dict(
+                model="GW-Dreamer",
+                setting="default",
+                seed=str(seed),
+                task="open_slide",
+                env_step=str(2000 * i),
+            )
+            | dict(normalised_return="0.5", success_count=c)
+            for i, c in enumerate(counts, 1)
+        ]
+
+    curves = rows(1, ["0"] * 10 + ["500"] * 10) + rows(2, ["100"] * 20) + rows(3, [""] * 20)
+    runs = [
+        dict(model="GW-Dreamer", setting="default", seed=str(s), task="open_slide", status="not reached")
+        for s in (1, 2, 3)
+    ]
+    fig, ax = plt.subplots()
+    assert PF.draw_curves(ax, curves, runs, "default", "robodesk", column="success_count") == ["GW-Dreamer"]
+    (line,) = ax.get_lines()  # no criterion line: the criterion is a normalised return
+    assert line.get_label() == "GW-Dreamer (0/3 reached, 2 drawn)"
+    x, y = line.get_data()
+    # the mean over seeds 1 and 2 of their 10-episode means: 50 from the 10th episode (20,000 frames) on,
+    # 300 at the 20th (40,000), in between as seed 1's window fills with 500s
+    assert x[0] >= 20000 and y[x < 22000].tolist() == [50.0] * int((x < 22000).sum())
+    assert x[-1] == 40000 and y[-1] == 300.0 and np.all(np.diff(y) >= 0)
+    plt.close(fig)
