@@ -60,6 +60,14 @@
    distance to the task's target at the start and the share of steps with a robot joint within 0.1 rad
    of its bound. Equal returns in the first two ways clear the GRU state's long history as a cause.
 
+8. The critic against the returns the agent really got (--critic-bias N): along the newest N whole
+   episodes of the replay, h_t filtered from their stored z and actions as when acting, the critic's value
+   V(h_t) against the discounted return of the stored rewards from t to the episode's end, bootstrapped
+   there from the critic (the episodes end by time limit), grouped by the reward of the step before
+   (push_green, per agent step: above 3.05 the light was on; 2.7-3.05 near the button, unpressed; below,
+   farther). A critic that tracks the real returns has V - G near 0 in every group and the same gaps
+   between groups as G.
+
     python benchmarks/robodesk_diagnose.py \\
         checkpoints/robodesk/agents/gw_dreamer_gw_robodesk_push_green_s1.pt
 """
@@ -100,6 +108,8 @@ class Args:
     """episodes per checkpoint of part 6 (0 skips it)"""
     spread_episodes: int = 0
     """episodes of part 7 for each of its three ways (0 skips it)"""
+    critic_bias: int = 0
+    """newest replayed episodes of part 8 (0 skips it)"""
     press_tolerance: bool = False
     """also print what pressing takes: the scripted expert aimed off the button's centre, at each gripper
     setting (part 4's reference; the same for every checkpoint)"""
@@ -111,17 +121,26 @@ def has_done_head(ck: dict) -> bool:
     return any(k.startswith("wm.done_head.") for k in ck["agent"])
 
 
-@torch.no_grad()
-def saturation(path: str, sequences: int, seed: int) -> dict:
-    ck = torch.load(path, weights_only=False, map_location="cpu")
+def replay_agent(ck: dict):
+    """The agent of a gw_dreamer.py RoboDesk checkpoint and the settings of its run."""
     if ck.get("kind") != "gw_dreamer" or ck.get("env") != "robodesk":
-        raise SystemExit(f"error: {path} is not a gw_dreamer.py RoboDesk agent checkpoint")
+        raise SystemExit("error: not a gw_dreamer.py RoboDesk agent checkpoint")
     args = G.Args(**{k: v for k, v in ck["args"].items() if k in G.Args.__dataclass_fields__}).resolve()
     z_dim = ck["replay"]["z"].shape[-1]
     agent = G.Agent(
         "robodesk", z_dim, args.reward_loss, args.return_norm_decay, args.cpu_preset, has_done_head(ck)
     )
     agent.load_state_dict(ck["agent"])
+    return agent, args
+
+
+@torch.no_grad()
+def saturation(path: str, sequences: int, seed: int) -> dict:
+    ck = torch.load(path, weights_only=False, map_location="cpu")
+    if ck.get("kind") != "gw_dreamer" or ck.get("env") != "robodesk":
+        raise SystemExit(f"error: {path} is not a gw_dreamer.py RoboDesk agent checkpoint")
+    agent, args = replay_agent(ck)
+    z_dim = ck["replay"]["z"].shape[-1]
     replay = G.Replay(args.buffer_size, args.num_envs, z_dim, G.SIZES["robodesk"]["actions"], seed)
     state = ck["replay"] | {"rng": np.random.default_rng(seed).bit_generator.state}
     replay.load_state_dict(state)
@@ -652,6 +671,51 @@ def print_spread(spread: dict) -> None:
         print(line)
 
 
+def discounted_returns(rewards: np.ndarray, v_end: float, gamma: float) -> np.ndarray:
+    """G_t = r_t + gamma G_{t+1} over an episode's stored rewards (entry t's reward leads from state t to
+    t + 1), G at the final observation = ``v_end``; one value per state, the final one included."""
+    g = np.empty(len(rewards) + 1)
+    g[-1] = v_end
+    for t in range(len(rewards) - 1, -1, -1):
+        g[t] = rewards[t] + gamma * g[t + 1]
+    return g
+
+
+# Part 8's groups by the reward of the step before (push_green, per agent step of 4 frames): the distance
+# part is at most 0.75 x 4 = 3, the light adds up to 1.
+REWARD_GROUPS = {"light on": (3.05, np.inf), "near, unpressed": (2.7, 3.05), "farther": (-np.inf, 2.7)}
+
+
+@torch.no_grad()
+def critic_bias(agent, replay: dict, episodes: int, gamma: float, reward_offset: float = 0.0) -> dict:
+    """Part 8: {group: (states, mean V, mean G)} over the newest ``episodes`` whole episodes of the
+    replay's first stream; h_t is filtered from h = 0 at each episode's start as when acting."""
+    pos, count, cap = int(replay["pos"][0]), int(replay["count"][0]), replay["z"].shape[1]
+    idx = np.arange(pos - min(count, cap), pos) % cap  # oldest to newest
+    z, a = (torch.as_tensor(replay[k][0][idx]) for k in ("z", "a"))
+    r, first, last = (np.asarray(replay[k][0][idx]) for k in ("r", "first", "last"))
+    starts, ends = np.flatnonzero(first > 0), np.flatnonzero(last > 0)
+    whole = [(s, ends[ends >= s][0]) for s in starts if (ends >= s).any()]
+    values, returns, before = [], [], []
+    for s, e in whole[-episodes:]:
+        h, v = torch.zeros(1, agent.wm.hidden), []
+        for t in range(s, e + 1):
+            v.append(float(agent.twohot.mean(agent.critic(agent.features(h, z[t][None])))))
+            h = agent.wm.step(h, z[t][None], a[t][None])
+        g = discounted_returns(r[s:e] - reward_offset, v[-1], gamma)  # the rewards the critic learns
+        values.append(np.array(v[:-1])), returns.append(g[:-1]), before.append(np.r_[np.nan, r[s : e - 1]])
+    v, g, b = map(np.concatenate, (values, returns, before))
+    out = {}
+    for name, (lo, hi) in REWARD_GROUPS.items():
+        m = (b > lo) & (b <= hi)
+        out[name] = (
+            int(m.sum()),
+            float(v[m].mean()) if m.any() else np.nan,
+            float(g[m].mean()) if m.any() else np.nan,
+        )
+    return out
+
+
 def press_tolerance() -> None:
     """The scripted push_green expert with its target moved off the button's centre, at four gripper
     settings: the share of steps 60-120 with the light on (the press has settled by step 60)."""
@@ -773,6 +837,20 @@ def main(args: Args) -> list[dict]:
         if args.spread_episodes:
             r["spread"] = episode_spread(path, args.spread_episodes)
             print_spread(r["spread"])
+        if args.critic_bias:
+            ck = torch.load(path, weights_only=False, map_location="cpu")
+            agent, run_args = replay_agent(ck)
+            r["critic_bias"] = critic_bias(
+                agent, ck["replay"], args.critic_bias, run_args.gamma, run_args.reward_offset
+            )
+            print(
+                f"  critic on the newest {args.critic_bias} replayed episodes, V against the real discounted "
+                "return G, by the reward of the step before: "
+                + "; ".join(
+                    f"{k} ({n} states) V {v:.1f}, G {g:.1f}, V - G {v - g:+.1f}"
+                    for k, (n, v, g) in r["critic_bias"].items()
+                )
+            )
         out.append(r)
     if args.reward_transfer:
         if len(args.checkpoints) < 2:

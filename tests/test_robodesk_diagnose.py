@@ -1,10 +1,11 @@
 """benchmarks/robodesk_diagnose.py: how much of the stored actions the state predicts (part 1), the distance
 from the agent's arm poses to a dataset's (part 5), the reward read across agents (part 6) and the GRU
-state read over the last steps only (part 7)."""
+state read over the last steps only (part 7), and the critic against the real returns (part 8)."""
 
 import sys
 
 import numpy as np
+import pytest
 import torch
 from conftest import ROOT
 
@@ -130,3 +131,37 @@ def test_windowed_state_reads_only_the_last_steps_from_zero_as_a_replayed_h():
     assert torch.equal(D.windowed_state(wm, zs, acts, 64), h)
     assert torch.equal(D.windowed_state(wm, zs, acts, 4), tail)
     assert (tail - h).abs().max() > 1e-3
+
+
+def test_critic_bias_sets_the_critic_against_the_discounted_returns_of_the_newest_episodes():
+    """A stand-in agent whose h counts the steps since the episode's start and whose critic says 10 per
+    step: V_t = 10 t. The ring buffer holds an older episode (slots 4-7) and the newest (slots 0-3)."""
+
+    class Stand:
+        wm = type("W", (), {"hidden": 1, "step": staticmethod(lambda h, z, a: h + 1)})
+        twohot = type("T", (), {"mean": staticmethod(lambda x: x[0, 0])})
+
+        @staticmethod
+        def critic(x):
+            return 10 * x
+
+        @staticmethod
+        def features(h, z):
+            return h
+
+    r = np.array([4.0, 2.0, 2.9, 0.0, 3.5, 3.5, 3.5, 0.0], np.float32)[None]
+    first = np.array([1, 0, 0, 0, 1, 0, 0, 0], np.float32)[None]
+    replay = dict(z=np.zeros((1, 8, 3), np.float32), a=np.zeros((1, 8, 5), np.float32), r=r, first=first)
+    replay |= dict(last=np.roll(first, -1), pos=np.array([4]), count=np.array([8]))
+    out = D.critic_bias(Stand(), replay, episodes=1, gamma=0.5)
+    # newest episode: V = 0, 10, 20, 30; G_3 = V_3 = 30, G_2 = 2.9 + 15 = 17.9, G_1 = 2 + 8.95 = 10.95
+    # state 1 follows a reward of 4 (light on), state 2 one of 2 (farther); state 0 follows none
+    assert out["light on"] == (1, 10.0, pytest.approx(10.95))
+    assert out["farther"] == (1, 20.0, pytest.approx(17.9))
+    assert out["near, unpressed"][0] == 0
+    # both episodes: the older one's states 1 and 2 follow rewards of 3.5 (G_2 = 3.5 + 15, G_1 = 3.5 + 9.25)
+    both = D.critic_bias(Stand(), replay, episodes=2, gamma=0.5)
+    assert both["light on"] == (3, 40 / 3, pytest.approx((10.95 + 12.75 + 18.5) / 3))
+    # a reward offset (--reward-offset) is taken off the stored rewards, as in training
+    off = D.critic_bias(Stand(), replay, episodes=1, gamma=0.5, reward_offset=1.0)
+    assert off["light on"] == (1, 10.0, pytest.approx(1 + 0.5 * (1.9 + 15)))  # grouped by the raw reward
