@@ -121,10 +121,11 @@ def has_done_head(ck: dict) -> bool:
     return any(k.startswith("wm.done_head.") for k in ck["agent"])
 
 
-def replay_agent(ck: dict):
-    """The agent of a gw_dreamer.py RoboDesk checkpoint and the settings of its run."""
+def replay_agent(ck: dict, path: str):
+    """The agent of the gw_dreamer.py RoboDesk checkpoint ``ck`` (read from ``path``) and its run's
+    settings."""
     if ck.get("kind") != "gw_dreamer" or ck.get("env") != "robodesk":
-        raise SystemExit("error: not a gw_dreamer.py RoboDesk agent checkpoint")
+        raise SystemExit(f"error: {path} is not a gw_dreamer.py RoboDesk agent checkpoint")
     args = G.Args(**{k: v for k, v in ck["args"].items() if k in G.Args.__dataclass_fields__}).resolve()
     z_dim = ck["replay"]["z"].shape[-1]
     agent = G.Agent(
@@ -137,9 +138,7 @@ def replay_agent(ck: dict):
 @torch.no_grad()
 def saturation(path: str, sequences: int, seed: int) -> dict:
     ck = torch.load(path, weights_only=False, map_location="cpu")
-    if ck.get("kind") != "gw_dreamer" or ck.get("env") != "robodesk":
-        raise SystemExit(f"error: {path} is not a gw_dreamer.py RoboDesk agent checkpoint")
-    agent, args = replay_agent(ck)
+    agent, args = replay_agent(ck, path)
     z_dim = ck["replay"]["z"].shape[-1]
     replay = G.Replay(args.buffer_size, args.num_envs, z_dim, G.SIZES["robodesk"]["actions"], seed)
     state = ck["replay"] | {"rng": np.random.default_rng(seed).bit_generator.state}
@@ -839,7 +838,7 @@ def main(args: Args) -> list[dict]:
             print_spread(r["spread"])
         if args.critic_bias:
             ck = torch.load(path, weights_only=False, map_location="cpu")
-            agent, run_args = replay_agent(ck)
+            agent, run_args = replay_agent(ck, path)
             r["critic_bias"] = critic_bias(
                 agent, ck["replay"], args.critic_bias, run_args.gamma, run_args.reward_offset
             )
