@@ -64,9 +64,9 @@
    episodes of the replay, h_t filtered from their stored z and actions as when acting, the critic's value
    V(h_t) against the discounted return of the stored rewards from t to the episode's end, bootstrapped
    there from the critic (the episodes end by time limit), grouped by the reward of the step before
-   (push_green, per agent step: above 3.05 the light was on; 2.7-3.05 near the button, unpressed; below,
-   farther). A critic that tracks the real returns has V - G near 0 in every group and the same gaps
-   between groups as G.
+   (a button task: push_green, push_red or push_blue; per agent step: above 3.05 the light was on;
+   2.7-3.05 near the button, unpressed; below, farther). A critic that tracks the real returns has V - G
+   near 0 in every group and the same gaps between groups as G.
 
     python benchmarks/robodesk_diagnose.py \\
         checkpoints/robodesk/agents/gw_dreamer_gw_robodesk_push_green_s1.pt
@@ -680,15 +680,22 @@ def discounted_returns(rewards: np.ndarray, v_end: float, gamma: float) -> np.nd
     return g
 
 
-# Part 8's groups by the reward of the step before (push_green, per agent step of 4 frames): the distance
-# part is at most 0.75 x 4 = 3, the light adds up to 1.
+# Part 8's groups by the reward of the step before (a button task, per agent step of 4 frames): the
+# distance part is at most 0.75 x 4 = 3, the light adds up to 1.
 REWARD_GROUPS = {"light on": (3.05, np.inf), "near, unpressed": (2.7, 3.05), "farther": (-np.inf, 2.7)}
+BUTTON_TASKS = ("push_green", "push_red", "push_blue")
 
 
 @torch.no_grad()
-def critic_bias(agent, replay: dict, episodes: int, gamma: float, reward_offset: float = 0.0) -> dict:
+def critic_bias(
+    agent, replay: dict, episodes: int, gamma: float, reward_offset: float = 0.0, task: str = "push_green"
+) -> dict:
     """Part 8: {group: (states, mean V, mean G)} over the newest ``episodes`` whole episodes of the
     replay's first stream; h_t is filtered from h = 0 at each episode's start as when acting."""
+    if task not in BUTTON_TASKS:
+        raise SystemExit(
+            f"error: part 8 groups a button task's rewards ({', '.join(BUTTON_TASKS)}), not {task}'s"
+        )
     pos, count, cap = int(replay["pos"][0]), int(replay["count"][0]), replay["z"].shape[1]
     idx = np.arange(pos - min(count, cap), pos) % cap  # oldest to newest
     z, a = (torch.as_tensor(replay[k][0][idx]) for k in ("z", "a"))
@@ -840,7 +847,7 @@ def main(args: Args) -> list[dict]:
             ck = torch.load(path, weights_only=False, map_location="cpu")
             agent, run_args = replay_agent(ck, path)
             r["critic_bias"] = critic_bias(
-                agent, ck["replay"], args.critic_bias, run_args.gamma, run_args.reward_offset
+                agent, ck["replay"], args.critic_bias, run_args.gamma, run_args.reward_offset, run_args.task
             )
             print(
                 f"  critic on the newest {args.critic_bias} replayed episodes, V against the real discounted "

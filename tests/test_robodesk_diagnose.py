@@ -165,3 +165,7 @@ def test_critic_bias_sets_the_critic_against_the_discounted_returns_of_the_newes
     # a reward offset (--reward-offset) is taken off the stored rewards, as in training
     off = D.critic_bias(Stand(), replay, episodes=1, gamma=0.5, reward_offset=1.0)
     assert off["light on"] == (1, 10.0, pytest.approx(1 + 0.5 * (1.9 + 15)))  # grouped by the raw reward
+    # the groups are the button tasks' rewards: the same for push_red, refused for another task
+    assert D.critic_bias(Stand(), replay, episodes=1, gamma=0.5, task="push_red") == out
+    with pytest.raises(SystemExit, match="open_slide"):
+        D.critic_bias(Stand(), replay, episodes=1, gamma=0.5, task="open_slide")
