@@ -121,11 +121,22 @@ def has_done_head(ck: dict) -> bool:
     return any(k.startswith("wm.done_head.") for k in ck["agent"])
 
 
-def replay_agent(ck: dict, path: str):
-    """The agent of the gw_dreamer.py RoboDesk checkpoint ``ck`` (read from ``path``) and its run's
-    settings."""
-    if ck.get("kind") != "gw_dreamer" or ck.get("env") != "robodesk":
+def read_checkpoint(path: str) -> dict:
+    """The gw_dreamer.py RoboDesk agent checkpoint at ``path``; anything else stops with a one-line error."""
+    try:
+        ck = torch.load(path, weights_only=False, map_location="cpu")
+    except FileNotFoundError:
+        raise SystemExit(f"error: {path} does not exist") from None
+    except Exception as err:  # not a file torch.save wrote: unpickling, zip or end-of-file errors
+        raise SystemExit(f"error: {path} is not a torch checkpoint ({type(err).__name__})") from None
+    if not isinstance(ck, dict) or ck.get("kind") != "gw_dreamer" or ck.get("env") != "robodesk":
         raise SystemExit(f"error: {path} is not a gw_dreamer.py RoboDesk agent checkpoint")
+    return ck
+
+
+def replay_agent(ck: dict):
+    """The agent of the gw_dreamer.py RoboDesk checkpoint ``ck`` (``read_checkpoint``'s) and its run's
+    settings."""
     args = G.Args(**{k: v for k, v in ck["args"].items() if k in G.Args.__dataclass_fields__}).resolve()
     z_dim = ck["replay"]["z"].shape[-1]
     agent = G.Agent(
@@ -137,8 +148,8 @@ def replay_agent(ck: dict, path: str):
 
 @torch.no_grad()
 def saturation(path: str, sequences: int, seed: int) -> dict:
-    ck = torch.load(path, weights_only=False, map_location="cpu")
-    agent, args = replay_agent(ck, path)
+    ck = read_checkpoint(path)
+    agent, args = replay_agent(ck)
     z_dim = ck["replay"]["z"].shape[-1]
     replay = G.Replay(args.buffer_size, args.num_envs, z_dim, G.SIZES["robodesk"]["actions"], seed)
     state = ck["replay"] | {"rng": np.random.default_rng(seed).bit_generator.state}
@@ -263,7 +274,7 @@ def agent_in_simulator(path: str, task: str | None = None):
     os.environ.setdefault("MUJOCO_GL", "egl")
     from envs.robodesk import RoboDeskEnv
 
-    ck = torch.load(path, weights_only=False, map_location="cpu")
+    ck = read_checkpoint(path)
     args = G.Args(**{k: v for k, v in ck["args"].items() if k in G.Args.__dataclass_fields__}).resolve()
     encoder, _ = G.load_frozen(args, torch.device("cpu"))
     z_dim, done_head = encoder.z_dim, has_done_head(ck)
@@ -412,7 +423,7 @@ def gw_coverage(path: str, episodes: int, gw_dirs: tuple[str, ...]) -> dict:
     from envs.robodesk_experts import EXPERTS
 
     agent, encoder, env = agent_in_simulator(path, task="push_green")
-    ck = torch.load(path, weights_only=False, map_location="cpu")
+    ck = read_checkpoint(path)
     encoders = {"the agent's GW": encoder}
     for folder in gw_dirs:
         a = G.Args(**{k: v for k, v in ck["args"].items() if k in G.Args.__dataclass_fields__}).resolve()
@@ -611,7 +622,7 @@ def episode_spread(path: str, episodes: int, seed: int = 900) -> dict:
     from envs.robodesk_experts import PLANS
 
     agent, encoder, env0 = agent_in_simulator(path)
-    ck = torch.load(path, weights_only=False, map_location="cpu")
+    ck = read_checkpoint(path)
     args = G.Args(**{k: v for k, v in ck["args"].items() if k in G.Args.__dataclass_fields__}).resolve()
     ref = G.reference_returns(args)
     if ref is None:
@@ -844,8 +855,8 @@ def main(args: Args) -> list[dict]:
             r["spread"] = episode_spread(path, args.spread_episodes)
             print_spread(r["spread"])
         if args.critic_bias:
-            ck = torch.load(path, weights_only=False, map_location="cpu")
-            agent, run_args = replay_agent(ck, path)
+            ck = read_checkpoint(path)
+            agent, run_args = replay_agent(ck)
             r["critic_bias"] = critic_bias(
                 agent, ck["replay"], args.critic_bias, run_args.gamma, run_args.reward_offset, run_args.task
             )

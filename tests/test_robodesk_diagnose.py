@@ -169,3 +169,14 @@ def test_critic_bias_sets_the_critic_against_the_discounted_returns_of_the_newes
     assert D.critic_bias(Stand(), replay, episodes=1, gamma=0.5, task="push_red") == out
     with pytest.raises(SystemExit, match="open_slide"):
         D.critic_bias(Stand(), replay, episodes=1, gamma=0.5, task="open_slide")
+
+
+def test_a_file_that_is_not_an_agent_checkpoint_stops_with_one_line_naming_it(tmp_path):
+    garbage, other = tmp_path / "notes.pt", tmp_path / "vae.pt"
+    garbage.write_text("not a checkpoint")
+    torch.save({"kind": "dreamer_baseline", "env": "robodesk"}, other)
+    cases = {garbage: "is not a torch checkpoint", other: "is not a gw_dreamer.py RoboDesk agent checkpoint"}
+    cases[tmp_path / "missing.pt"] = "does not exist"
+    for path, message in cases.items():
+        with pytest.raises(SystemExit, match=f"error: {path} {message}"):
+            D.main(D.Args(checkpoints=[str(path)]))
