@@ -1889,6 +1889,8 @@ def main(args: Args) -> None:
             train_gw(args, writer, stop)
     finally:
         stop.restore()
+        if dist.is_initialized():  # torchrun: a process that exits with its group alive can abort
+            dist.destroy_process_group()
     if writer is not None:
         writer.close()
         print(f"done in {(time.time() - t0) / 60:.1f} min")
@@ -1910,9 +1912,6 @@ class LazyWriter:
     def close(self) -> None:
         if self.writer is not None:
             self.writer.close()
-
-    if dist.is_initialized():
-        dist.destroy_process_group()
 
 
 if __name__ == "__main__":

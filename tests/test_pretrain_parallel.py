@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+import torch.distributed as dist
 import tyro
 from conftest import ROOT, TINY_PRETRAIN, run_pretrain, run_script
 from torch.utils.tensorboard import SummaryWriter
@@ -103,6 +104,32 @@ def test_an_interrupted_stage_continues_under_torchrun_as_in_one_process(tmp_pat
     a = torch.load(ck / "vae.pt", weights_only=False)["vae_v"]
     b = torch.load(tmp_path / "ck2" / "simple_shapes" / "vae.pt", weights_only=False)["vae_v"]
     assert_same_weights(a, b, rel=REL)
+
+
+@pytest.mark.parametrize("stage_ends", ["done", "interrupted"])
+def test_main_ends_the_process_group_it_ran_in(tmp_path, monkeypatch, stage_ends):
+    """A torchrun process that exits with its gloo group alive can abort after its work is done
+    ("terminate called without an active exception"): main ends the group, also when a stage stops."""
+
+    def stage(args, stop):
+        if stage_ends == "interrupted":
+            P.interrupted("test stage")
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(P, "collect", stage)
+    dist.init_process_group("gloo", init_method=f"file://{tmp_path / 'group'}", rank=0, world_size=1)
+    try:
+        paths = ["--data-dir", str(tmp_path / "data"), "--checkpoint-dir", str(tmp_path / "ck")]
+        args = tyro.cli(P.Args, args=["--env", "simple_shapes", "--stages", "collect", *paths])
+        if stage_ends == "interrupted":
+            with pytest.raises(SystemExit):
+                P.main(args)
+        else:
+            P.main(args)
+        assert not dist.is_initialized()
+    finally:
+        if dist.is_initialized():
+            dist.destroy_process_group()
 
 
 def test_collect_and_batches_that_do_not_split_are_refused_under_torchrun(tmp_path):
