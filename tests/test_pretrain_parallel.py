@@ -1,7 +1,7 @@
 """pretrain_vae_gw.py at scale: DistributedDataParallel under torchrun (2 CPU processes, gloo) trains
 what one process trains on the same global batch, rank 0 alone logs and saves, an interrupted stage
-continues under torchrun as in one process; shards streamed a few at a time (--stream-shards) give the
-stages their data with bounded memory."""
+continues under torchrun as in one process, main ends its process group; shards streamed a few at a
+time (--stream-shards) give the stages their data with bounded memory."""
 
 import os
 import shutil
