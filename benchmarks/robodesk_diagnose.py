@@ -68,6 +68,14 @@
    2.7-3.05 near the button, unpressed; below, farther). A critic that tracks the real returns has V - G
    near 0 in every group and the same gaps between groups as G.
 
+9. Reaching and moving the object (--object-episodes N; open_slide, open_drawer): in N episodes from
+   fixed starts (seeds 950, 951, ...) for the agent (acting as the run evaluates it), the uniformly
+   random policy (the normalised return's 0) and the task's scripted expert (its 1): the end effector's
+   closest approach to the contact point (the expert's way-point from which it pushes the slide or pulls
+   the drawer), the largest movement of the slide or drawer from where the episode started, and the
+   success count. An agent that never moves the object never meets
+   the reward that opening it pays (three quarters of the dense reward), only the reward for nearing it.
+
     python benchmarks/robodesk_diagnose.py \\
         checkpoints/robodesk/agents/gw_dreamer_gw_robodesk_push_green_s1.pt
 """
@@ -110,6 +118,8 @@ class Args:
     """episodes of part 7 for each of its three ways (0 skips it)"""
     critic_bias: int = 0
     """newest replayed episodes of part 8 (0 skips it)"""
+    object_episodes: int = 0
+    """episodes of part 9 for each of its three policies (0 skips it)"""
     press_tolerance: bool = False
     """also print what pressing takes: the scripted expert aimed off the button's centre, at each gripper
     setting (part 4's reference; the same for every checkpoint)"""
@@ -733,6 +743,89 @@ def critic_bias(
     return out
 
 
+# Part 9's tasks and the joint of the object each one opens.
+OBJECT_JOINTS = {"open_slide": "slide_joint", "open_drawer": "drawer_joint"}
+
+
+class UniformPolicy:
+    """The normalised return's 0: actions drawn uniformly from [-1, 1]^5."""
+
+    def __init__(self, seed: int):
+        self.rng = np.random.default_rng(seed)
+
+    def reset(self) -> None:
+        pass
+
+    def act(self, env, obs: dict) -> np.ndarray:
+        return self.rng.uniform(-1, 1, 5)
+
+
+class ExpertPolicy:
+    """The normalised return's 1: the task's scripted expert, without action noise."""
+
+    def __init__(self, env):
+        from envs.robodesk_experts import EXPERTS
+
+        self.expert = EXPERTS[env.task](env)
+
+    def reset(self) -> None:
+        self.expert.reset()
+
+    def act(self, env, obs: dict) -> np.ndarray:
+        return self.expert.act(env)
+
+
+class AgentPolicy:
+    """A checkpoint's agent acting as the run evaluates it: actions sampled, no exploration noise."""
+
+    def __init__(self, agent, encoder):
+        self.agent, self.encoder = agent, encoder
+
+    def reset(self) -> None:
+        self.h = torch.zeros(1, self.agent.wm.hidden)
+
+    @torch.no_grad()
+    def act(self, env, obs: dict) -> np.ndarray:
+        z = self.encoder({k: v[None] for k, v in obs.items()})
+        a = self.agent.actor.act(self.agent.features(self.h, z))
+        self.h = self.agent.wm.step(self.h, z, a)
+        return a[0].numpy()
+
+
+def object_reach(env, policy, episodes: int, seed: int = 950) -> dict[str, np.ndarray]:
+    """Part 9 for one policy: per episode the end effector's closest approach to the contact point (cm),
+    the largest movement of the object's joint from its value at reset (cm) and the success count (agent
+    steps in which the task's success test holds)."""
+    from envs.robodesk_experts import PLANS
+
+    if env.task not in OBJECT_JOINTS:
+        raise SystemExit(f"error: part 9 reads an object task ({', '.join(OBJECT_JOINTS)}), not {env.task}")
+    joint = OBJECT_JOINTS[env.task]
+    out = {k: np.zeros(episodes) for k in ("closest", "moved", "success")}
+    for ep in range(episodes):
+        obs, _ = env.reset(seed=seed + ep)
+        policy.reset()
+        start, dists, done = float(env._qpos(joint)[0]), [], False
+        while not done:
+            contact = PLANS[env.task](env)[-2][0]  # where the expert starts to push or pull; moves with it
+            dists.append(np.linalg.norm(env.data.site_xpos[env._ee_site] - contact))
+            obs, _, term, trunc, info = env.step(policy.act(env, obs))
+            out["moved"][ep] = max(out["moved"][ep], 100 * abs(float(env._qpos(joint)[0]) - start))
+            out["success"][ep] += info["success"]
+            done = term or trunc
+        out["closest"][ep] = 100 * min(dists)
+    return out
+
+
+def object_reaches(path: str, episodes: int) -> dict[str, dict[str, np.ndarray]]:
+    """Part 9: ``object_reach`` of the checkpoint's agent, the random policy and the scripted expert."""
+    agent, encoder, env = agent_in_simulator(path)
+    policies = {"agent": AgentPolicy(agent, encoder), "random": UniformPolicy(0), "expert": ExpertPolicy(env)}
+    out = {name: object_reach(env, policy, episodes) for name, policy in policies.items()}
+    env.close()
+    return out
+
+
 def press_tolerance() -> None:
     """The scripted push_green expert with its target moved off the button's centre, at four gripper
     settings: the share of steps 60-120 with the light on (the press has settled by step 60)."""
@@ -868,6 +961,15 @@ def main(args: Args) -> list[dict]:
                     for k, (n, v, g) in r["critic_bias"].items()
                 )
             )
+        if args.object_episodes:
+            r["object_reach"] = object_reaches(path, args.object_episodes)
+            for name, o in r["object_reach"].items():
+                print(
+                    f"  {name}, {args.object_episodes} episodes: closest to the contact point "
+                    f"{np.median(o['closest']):.1f} cm (median; each {np.round(o['closest'], 1)}); the "
+                    f"object moved at most {np.round(o['moved'], 1)} cm; success count "
+                    f"{np.round(o['success'])}"
+                )
         out.append(r)
     if args.reward_transfer:
         if len(args.checkpoints) < 2:

@@ -1,6 +1,7 @@
 """benchmarks/robodesk_diagnose.py: how much of the stored actions the state predicts (part 1), the distance
 from the agent's arm poses to a dataset's (part 5), the reward read across agents (part 6) and the GRU
-state read over the last steps only (part 7), and the critic against the real returns (part 8)."""
+state read over the last steps only (part 7), the critic against the real returns (part 8), and how
+near an agent gets to the slide or drawer and how far it moves it (part 9)."""
 
 import sys
 
@@ -180,3 +181,16 @@ def test_a_file_that_is_not_an_agent_checkpoint_stops_with_one_line_naming_it(tm
     for path, message in cases.items():
         with pytest.raises(SystemExit, match=f"error: {path} {message}"):
             D.main(D.Args(checkpoints=[str(path)]))
+
+
+def test_object_reach_tells_the_expert_that_opens_the_slide_from_the_random_policy_that_never_touches_it():
+    from envs.robodesk import RoboDeskEnv
+
+    env = RoboDeskEnv(task="open_slide", episode_length=800, render_images=False)  # 200 agent steps
+    expert = D.object_reach(env, D.ExpertPolicy(env), episodes=1)
+    uniform = D.object_reach(env, D.UniformPolicy(0), episodes=1)
+    env.close()
+    assert expert["closest"][0] < 2.5 and expert["moved"][0] > 20  # at the handle's edge, then pushing
+    assert uniform["closest"][0] > 10 and uniform["moved"][0] < 1
+    with pytest.raises(SystemExit, match="part 9 reads an object task"):
+        D.object_reach(RoboDeskEnv(task="push_green", render_images=False), D.UniformPolicy(0), 1)
