@@ -73,8 +73,8 @@
    random policy (the normalised return's 0) and the task's scripted expert (its 1): the end effector's
    closest approach to the contact point (the expert's way-point from which it pushes the slide or pulls
    the drawer), the largest movement of the slide or drawer from where the episode started, and the
-   success count. An agent that never moves the object never meets
-   the reward that opening it pays (three quarters of the dense reward), only the reward for nearing it.
+   success count. An agent that never moves the object never meets the reward that opening it pays
+   (about three quarters of the dense reward), only the reward for nearing it.
 
     python benchmarks/robodesk_diagnose.py \\
         checkpoints/robodesk/agents/gw_dreamer_gw_robodesk_push_green_s1.pt
