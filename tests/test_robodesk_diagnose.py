@@ -192,5 +192,7 @@ def test_object_reach_tells_the_expert_that_opens_the_slide_from_the_random_poli
     env.close()
     assert expert["closest"][0] < 2.5 and expert["moved"][0] > 20  # at the handle's edge, then pushing
     assert uniform["closest"][0] > 10 and uniform["moved"][0] < 1
+    button = RoboDeskEnv(task="push_green", render_images=False)
     with pytest.raises(SystemExit, match="part 9 reads an object task"):
-        D.object_reach(RoboDeskEnv(task="push_green", render_images=False), D.UniformPolicy(0), 1)
+        D.object_reach(button, D.UniformPolicy(0), 1)
+    button.close()
