@@ -44,7 +44,6 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Literal
 
-import gymnasium as gym
 import numpy as np
 import torch
 import torch.nn as nn
@@ -89,6 +88,10 @@ class Args:
     """environment steps"""
     num_envs: int = 2
     """parallel environments"""
+    env_processes: bool = False
+    """RoboDesk: step each of the --num-envs environments in its own process (gymnasium's AsyncVectorEnv),
+    so that their simulators and renderers run on several cores; the same observations and rewards as in
+    one process"""
     num_steps: int = 8_192
     """steps per environment per rollout (2 x 8,192 = 16,384 per rollout)"""
     update_epochs: int = 15
@@ -504,26 +507,23 @@ def make_envs(args: Args, num_envs: int):
         from envs.simple_shapes import SimpleShapesVectorEnv
 
         return SimpleShapesVectorEnv(num_envs)
-    from envs.robodesk import TASKS
+    from envs.robodesk import TASKS, make_vector_env
 
     if args.task not in TASKS:
         raise UsageError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
-    fns = [
-        lambda: gym.make(
-            "RoboDesk-v0",
-            task=args.task,
-            render_quality=args.render_quality,
-            action_repeat=ACTION_REPEAT["robodesk"],
-            episode_length=args.episode_length,
-        )
-        for _ in range(num_envs)
-    ]
-    return gym.vector.SyncVectorEnv(fns, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
+    return make_vector_env(
+        num_envs,
+        args.env_processes,
+        task=args.task,
+        render_quality=args.render_quality,
+        action_repeat=ACTION_REPEAT["robodesk"],
+        episode_length=args.episode_length,
+    )
 
 
 def final_observations(info: dict, ends: np.ndarray) -> dict[str, np.ndarray]:
     """Last observations of the episodes that ended: a dict of arrays (batched Simple Shapes env) or an
-    array of per-env dicts (gymnasium's SyncVectorEnv)."""
+    array of per-env dicts (gymnasium's vector envs)."""
     fo = info["final_obs"]
     if isinstance(fo, dict):
         return {k: v[ends] for k, v in fo.items()}
@@ -755,8 +755,8 @@ def check_gw_vae_pair(vae: dict, gw: dict, vae_path: Path, gw_path: Path, checkp
 # Settings that may differ between the parts of one run (how long it runs, how it reports, where its files
 # are); every other setting defines the run, and --resume refuses a change to any of them.
 MAY_CHANGE = set(
-    "total_steps stop_at_criterion eval_episodes save_every device torch_threads resume overwrite"
-    " checkpoint checkpoint_dir vae_checkpoint gw_checkpoint exp_name eval_only drop".split()
+    "total_steps stop_at_criterion eval_episodes save_every device torch_threads env_processes resume"
+    " overwrite checkpoint checkpoint_dir vae_checkpoint gw_checkpoint exp_name eval_only drop".split()
 )
 
 

@@ -27,6 +27,8 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import signal
+from functools import partial
 from pathlib import Path
 
 os.environ.setdefault("MUJOCO_GL", "egl")  # headless rendering; must be set before mujoco is imported
@@ -540,3 +542,27 @@ class RoboDeskEnv(gym.Env):
                 f"RoboDesk qpos[{i}] = {qpos[i]:g} is outside [{self.qpos_low[i]:g}, {self.qpos_high[i]:g}] "
                 "(its joint's range with the soft-limit margin, or a quaternion's [-1, 1])"
             )
+
+
+# -------------------------------------------------------------------------------------------------
+# Vector environments
+# -------------------------------------------------------------------------------------------------
+def make_vector_env(num_envs: int, processes: bool = False, **kwargs) -> gym.vector.VectorEnv:
+    """``num_envs`` RoboDesk environments (``kwargs`` of ``RoboDeskEnv``, made by ``gym.make``) stepped
+    together with same-step autoreset (``info["final_obs"]`` holds an ended episode's last observation).
+
+    ``processes=True`` steps each in its own spawned process (gymnasium's ``AsyncVectorEnv``), so that the
+    simulators and renderers, most of an agent step's time, run side by side on several cores; the
+    observations, rewards and infos are those of the in-process ``SyncVectorEnv``. The processes ignore
+    Ctrl-C, which only the training loop's process answers (its run is saved, then the envs closed)."""
+    fns = [partial(_make_env, processes, kwargs) for _ in range(num_envs)]
+    mode = gym.vector.AutoresetMode.SAME_STEP
+    if processes:
+        return gym.vector.AsyncVectorEnv(fns, context="spawn", autoreset_mode=mode)
+    return gym.vector.SyncVectorEnv(fns, autoreset_mode=mode)
+
+
+def _make_env(in_worker: bool, kwargs: dict) -> gym.Env:
+    if in_worker:  # a spawned process (which imported envs, registering RoboDesk-v0, to unpickle this)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C in a terminal reaches the process group
+    return gym.make("RoboDesk-v0", **kwargs)

@@ -2,6 +2,8 @@
 
 import importlib
 import importlib.util
+import os
+import signal
 from pathlib import Path
 
 import gymnasium as gym
@@ -12,7 +14,7 @@ from gymnasium.utils.env_checker import check_env
 
 import envs  # noqa: F401  (registers the environments)
 from envs import robodesk
-from envs.robodesk import CORE_TASKS, EXTRA_TASKS, TASKS, ImageResizer, RoboDeskEnv
+from envs.robodesk import CORE_TASKS, EXTRA_TASKS, TASKS, ImageResizer, RoboDeskEnv, make_vector_env
 
 DATA = Path(__file__).parent / "data"
 
@@ -268,17 +270,37 @@ def test_crop_and_resize_match_pillow_exactly():
     np.testing.assert_array_equal(ImageResizer(64)(ref["render"]), ref["image"])
 
 
-def test_async_vector_env_runs_the_port():
-    # "spawn": a child forked from a process that already rendered inherits a broken GL state.
-    vec = gym.vector.AsyncVectorEnv(
-        [lambda: RoboDeskEnv(render_quality="fast", episode_length=8, action_repeat=4) for _ in range(2)],
-        context="spawn",
-    )
-    obs, _ = vec.reset(seed=[0, 1])
-    assert obs["image"].shape == (2, 64, 64, 3) and obs["attr"].shape == (2, 76)
-    obs, rew, term, trunc, info = vec.step(np.zeros((2, 5), dtype=np.float32))
-    assert rew.shape == (2,) and not term.any() and np.all(np.isfinite(obs["attr"]))
-    vec.close()
+def test_vector_env_in_processes_matches_the_one_in_this_process():
+    """make_vector_env(processes=True) steps each env in a spawned process (a child forked from a process
+    that already rendered inherits a broken GL state): the same observations, rewards, episode ends,
+    final observations and success flags as in one process, across an autoreset; its processes ignore
+    Ctrl-C, which reaches a terminal's whole process group."""
+    kw = dict(task="push_green", render_quality="fast", action_repeat=4, episode_length=24)
+    actions = np.random.default_rng(0).uniform(-1, 1, (8, 2, 5)).astype(np.float32)
+    runs = {}
+    for processes in (False, True):
+        vec = make_vector_env(2, processes, **kw)
+        if processes:
+            for worker in vec.processes:
+                os.kill(worker.pid, signal.SIGINT)
+        steps = [vec.reset(seed=3)[0]]
+        for a in actions:
+            steps.append(vec.step(a))
+        vec.close()
+        runs[processes] = steps
+    assert runs[True][0]["image"].shape == (2, 64, 64, 3)
+    for one, many in zip(runs[False][1:], runs[True][1:], strict=True):
+        for key in ("image", "attr"):
+            assert np.array_equal(one[0][key], many[0][key])
+        for got, want in zip(many[1:4], one[1:4], strict=True):  # reward, terminated, truncated
+            assert np.array_equal(got, want)
+        assert np.array_equal(one[4]["success"], many[4]["success"])
+    ends = [i for i, step in enumerate(runs[True][1:]) if step[3].all()]
+    assert ends == [5], ends  # 24 frames = 6 actions of 4, then the autoreset
+    final_one, final_many = runs[False][6][4]["final_obs"], runs[True][6][4]["final_obs"]
+    for i in range(2):
+        assert np.array_equal(final_one[i]["image"], final_many[i]["image"])
+        assert not np.array_equal(final_many[i]["attr"], runs[True][6][0]["attr"][i])  # reset since
 
 
 def plain_dense_reward(task: str, ee, pos: dict, ref: dict, joints: dict) -> float:
