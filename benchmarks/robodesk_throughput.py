@@ -1,6 +1,7 @@
 """RoboDesk throughput on this machine: physics, inverse kinematics, rendering (each quality) and full
 agent steps (faithful images, fast images, attributes only), the fast mode's image difference to the
-faithful one, and the resident memory of one environment.
+faithful one, the resident memory of one environment, and fast-image agent steps of --vector-envs
+environments stepped in this process and in one process each (``envs.robodesk.make_vector_env``).
 
     MUJOCO_GL=egl python benchmarks/robodesk_throughput.py
 """
@@ -15,7 +16,7 @@ import numpy as np
 import tyro
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from envs.robodesk import RoboDeskEnv  # noqa: E402
+from envs.robodesk import RoboDeskEnv, make_vector_env  # noqa: E402
 
 
 @dataclass
@@ -30,6 +31,10 @@ class Args:
     """renders timed per quality (faithful renders take about 0.3 s each here)"""
     agent_steps: int = 300
     """agent steps timed without images (image runs use fewer: renders and 4 x renders)"""
+    vector_envs: int = 2
+    """environments of the vector-env timing (ppo_variants.py's --num-envs)"""
+    vector_steps: int = 100
+    """vector steps timed in each mode (each steps every environment once)"""
     seed: int = 0
 
 
@@ -54,6 +59,16 @@ def agent_steps(env: RoboDeskEnv, n: int, seed: int) -> float:
     actions = np.random.default_rng(seed).uniform(-1, 1, (n + 1, 5))
     it = iter(actions)
     return rate(lambda: env.step(next(it)), n)
+
+
+def vector_steps(n_envs: int, processes: bool, n: int, task: str, seed: int) -> float:
+    """Agent steps per second (all environments together) of a fast-image vector env."""
+    vec = make_vector_env(n_envs, processes, task=task, render_quality="fast")
+    vec.reset(seed=seed)
+    actions = iter(np.random.default_rng(seed).uniform(-1, 1, (n + 1, n_envs, 5)).astype(np.float32))
+    steps_per_s = n_envs * rate(lambda: vec.step(next(actions)), n)
+    vec.close()
+    return steps_per_s
 
 
 def report(label: str, value: float, unit: str) -> None:
@@ -100,3 +115,8 @@ if __name__ == "__main__":
         fast.reset(options={"qpos": faithful.data.qpos.copy(), "qvel": faithful.data.qvel.copy()})
         diffs.append(np.abs(faithful.render_image().astype(int) - fast.render_image().astype(int)).mean())
     report("fast vs faithful image, mean |diff| /255", float(np.mean(diffs)), "(5 states)")
+
+    for processes in (False, True):
+        where = f"{args.vector_envs} processes" if processes else "one process"
+        steps = vector_steps(args.vector_envs, processes, args.vector_steps, args.task, args.seed)
+        report(f"agent steps, fast, {args.vector_envs} envs in {where}", steps, "steps/s")
