@@ -44,6 +44,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Literal
 
+import gymnasium as gym
 import numpy as np
 import torch
 import torch.nn as nn
@@ -377,7 +378,7 @@ def main(args: Args) -> dict:
     state, optimizer = run.state, run.optimizer
 
     # Rollout storage (T, N, ...); observations keep the stacked frames the policy saw.
-    envs_ = make_envs(args, args.num_envs)
+    envs_ = vector_envs(args, args.num_envs)
     obs, _ = envs_.reset(seed=args.seed + state.env_steps)
     stack = FrameStack(args.frame_stack)
     x = stack.reset(observer(obs, "none", dev))
@@ -507,13 +508,35 @@ def make_envs(args: Args, num_envs: int):
         from envs.simple_shapes import SimpleShapesVectorEnv
 
         return SimpleShapesVectorEnv(num_envs)
+    from envs.robodesk import TASKS
+
+    if args.task not in TASKS:
+        raise UsageError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
+    fns = [
+        lambda: gym.make(
+            "RoboDesk-v0",
+            task=args.task,
+            render_quality=args.render_quality,
+            action_repeat=ACTION_REPEAT["robodesk"],
+            episode_length=args.episode_length,
+        )
+        for _ in range(num_envs)
+    ]
+    return gym.vector.SyncVectorEnv(fns, autoreset_mode=gym.vector.AutoresetMode.SAME_STEP)
+
+
+def vector_envs(args: Args, num_envs: int):
+    """The envs of the rollouts and evaluations: make_envs's, or with --env-processes (RoboDesk) each in a
+    spawned process of its own (envs.robodesk.make_vector_env), which steps the same episodes."""
+    if args.env != "robodesk" or not args.env_processes:
+        return make_envs(args, num_envs)
     from envs.robodesk import TASKS, make_vector_env
 
     if args.task not in TASKS:
         raise UsageError(f"unknown RoboDesk task {args.task!r}; valid tasks: {', '.join(TASKS)}")
     return make_vector_env(
         num_envs,
-        args.env_processes,
+        True,
         task=args.task,
         render_quality=args.render_quality,
         action_repeat=ACTION_REPEAT["robodesk"],
@@ -523,7 +546,7 @@ def make_envs(args: Args, num_envs: int):
 
 def final_observations(info: dict, ends: np.ndarray) -> dict[str, np.ndarray]:
     """Last observations of the episodes that ended: a dict of arrays (batched Simple Shapes env) or an
-    array of per-env dicts (gymnasium's vector envs)."""
+    array of per-env dicts (gymnasium's SyncVectorEnv)."""
     fo = info["final_obs"]
     if isinstance(fo, dict):
         return {k: v[ends] for k, v in fo.items()}
@@ -550,7 +573,7 @@ def run_episodes(agent: Agent, observer: Observer, args: Args, n: int, drop: str
     """n episodes with the greedy action (arg-max / Gaussian mean) and ``drop`` applied: per-episode
     returns and success counts."""
     dev = next(agent.parameters()).device
-    envs_ = make_envs(args, n)
+    envs_ = vector_envs(args, n)
     obs, _ = envs_.reset(seed=seed)
     stack = FrameStack(args.frame_stack)
     x = stack.reset(observer(obs, drop, dev))
