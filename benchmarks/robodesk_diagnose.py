@@ -819,10 +819,18 @@ def object_reach(env, policy, episodes: int, seed: int = 950) -> dict[str, np.nd
 
 def object_reaches(path: str, episodes: int) -> dict[str, dict[str, np.ndarray]]:
     """Part 9: ``object_reach`` of the checkpoint's agent, the random policy and the scripted expert."""
+    from envs.robodesk import RoboDeskEnv
+
     agent, encoder, env = agent_in_simulator(path)
-    policies = {"agent": AgentPolicy(agent, encoder), "random": UniformPolicy(0), "expert": ExpertPolicy(env)}
-    out = {name: object_reach(env, policy, episodes) for name, policy in policies.items()}
+    # The random policy and the expert read no image: their env renders none (the same physics).
+    blind = RoboDeskEnv(task=env.task, render_images=False, episode_length=env.episode_length)
+    out = {"agent": object_reach(env, AgentPolicy(agent, encoder), episodes)}
+    out |= {
+        name: object_reach(blind, p, episodes)
+        for name, p in (("random", UniformPolicy(0)), ("expert", ExpertPolicy(blind)))
+    }
     env.close()
+    blind.close()
     return out
 
 
