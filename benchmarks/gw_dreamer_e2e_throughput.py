@@ -3,6 +3,7 @@ world model + actor-critic in imagination) in updates/s, its FLOPs (torch.utils.
 share of the two GW updates alone. Weights are random: speed does not depend on them.
 
     python benchmarks/gw_dreamer_e2e_throughput.py                   # both envs, paper and CPU settings
+    python benchmarks/gw_dreamer_e2e_throughput.py --envs robodesk --settings cpu-preset
     python benchmarks/gw_dreamer_e2e_throughput.py --envs simple_shapes --device cuda
 """
 
@@ -23,8 +24,12 @@ import gw_dreamer_e2e as E  # noqa: E402
 class Args:
     envs: tuple[str, ...] = ("simple_shapes", "robodesk")
     """environments to measure"""
+    settings: tuple[str, ...] = ("paper", "cpu-preset")
+    """network sizes to measure: the paper's, --cpu-preset's"""
     device: str = "cpu"
     """torch device"""
+    torch_threads: int = 0
+    """torch CPU threads (0: torch's default); 1 measures a run beside another (--torch-threads 1)"""
     updates: int = 3
     """timed updates per setting (after one counted and one warm-up update)"""
 
@@ -43,7 +48,8 @@ def timed(fn, a: Args) -> float:
 
 def measure(env: str, a: Args, **overrides) -> dict:
     args = E.Args(env=env, **overrides).resolve()
-    agent = E.Agent(env, args.reward_loss).to(a.device)
+    agent = E.Agent(env, args.reward_loss, args.return_norm_decay, args.cpu_preset, args.done_head == "on")
+    agent = agent.to(a.device)
     opts = E.make_optimizers(agent, args)
     spec, n_act = E.ENV_SPECS[env], E.SIZES[env]["actions"]
     replay = E.Replay(20_000, 1, spec["latent"], n_act, 0)
@@ -65,18 +71,19 @@ def measure(env: str, a: Args, **overrides) -> dict:
     sec, gw_sec = timed(step, a), timed(gw_only, a)
     starts = args.batch_size * (1 if args.imag_from == "last" else args.batch_length)
     out = {"starts": starts, "gw_batch": args.gw_batch_size, "s": sec, "gw_s": gw_sec, "flops": flops}
-    return out | {"gw_flops": gw_flops, "env_steps_per_s": args.train_ratio / sec}
+    # train_ratio counts agent steps per update; RoboDesk counts env steps in frames (4 per agent step)
+    return out | {"gw_flops": gw_flops, "env_steps_per_s": args.train_ratio * E.ACTION_REPEAT[env] / sec}
 
 
 if __name__ == "__main__":
     a = tyro.cli(Args)
+    if a.torch_threads:
+        torch.set_num_threads(a.torch_threads)
     torch.manual_seed(0)
     print(f"device {a.device}, torch threads {torch.get_num_threads()}")
     for env in a.envs:
-        settings = [("paper", {})]
-        if env == "simple_shapes":
-            settings.append(("cpu-preset", {"cpu_preset": True}))
-        for name, overrides in settings:
+        for name in a.settings:
+            overrides = {"cpu_preset": True} if name == "cpu-preset" else {}
             r = measure(env, a, **overrides)
             print(
                 f"{env:13s} {name:10s} global step (2 GW updates of {r['gw_batch']:,}, imagination from "

@@ -271,7 +271,8 @@ def test_world_model_and_actor_critic_send_no_gradient_into_the_gw():
 
 
 def test_gw_losses_are_the_pretraining_losses():
-    """Same weights, same batch, same fusion weights: the e2e L_GW terms equal pretrain_vae_gw.py's."""
+    """Same weights, same batch, same fusion weights: the e2e L_GW terms and their gradients equal
+    pretrain_vae_gw.py's (whose terms are checked against hand-computed values)."""
     torch.manual_seed(0)
     gw_e2e, gw_pre = E.GlobalWorkspace(10, 10, 64), P.GlobalWorkspace(10, 10, 64)
     gw_pre.load_state_dict(gw_e2e.state_dict())
@@ -281,6 +282,11 @@ def test_gw_losses_are_the_pretraining_losses():
     assert ours.keys() == theirs.keys()
     for k in ours:
         torch.testing.assert_close(ours[k], theirs[k])
+    for i, k in enumerate(ours):  # each term on its own: weights 1, 2, ... tell a swapped term
+        ours[k].mul(i + 1).backward(retain_graph=True)
+        theirs[k].mul(i + 1).backward(retain_graph=True)
+    for (name, p_ours), p_theirs in zip(gw_e2e.named_parameters(), gw_pre.parameters(), strict=True):
+        torch.testing.assert_close(p_ours.grad, p_theirs.grad, msg=name)
 
 
 def test_gw_learning_rate_follows_the_one_cycle_table():
