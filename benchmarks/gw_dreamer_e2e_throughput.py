@@ -1,6 +1,7 @@
-"""GW-Dreamer end-to-end speed at the paper's network sizes: one global training step (two GW updates +
-world model + actor-critic in imagination) in updates/s, its FLOPs (torch.utils.flop_counter), and the
-share of the two GW updates alone. Weights are random: speed does not depend on them.
+"""GW-Dreamer end-to-end speed at the paper's network sizes and at --cpu-preset's: one global training
+step (two GW updates + world model + actor-critic in imagination) in updates/s, its FLOPs
+(torch.utils.flop_counter), and the share of the two GW updates alone.
+Weights are random: speed does not depend on them.
 
     python benchmarks/gw_dreamer_e2e_throughput.py                   # both envs, paper and CPU settings
     python benchmarks/gw_dreamer_e2e_throughput.py --envs robodesk --settings cpu-preset
