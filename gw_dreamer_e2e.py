@@ -396,8 +396,8 @@ def gw_losses(gw: GlobalWorkspace, u_v, u_attr, alpha_fusion: torch.Tensor, temp
     sample, decode both) and the CLIP-like contrastive loss on the pre-fusion encodings.
 
     Each decoder runs once, on its demi-cycle, translation and fusion inputs stacked along the batch, and
-    the cycle re-encodes those translations: the same terms as separate calls, at about 15% less cost
-    per GW update (it runs twice per global step)."""
+    the cycle re-encodes those translations: the same terms as separate calls, with two decoder passes
+    fewer (this update runs twice per global step)."""
     u = {"v": u_v, "attr": u_attr}
     other = {"v": "attr", "attr": "v"}
     batch = len(u_v)
