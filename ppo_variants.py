@@ -546,7 +546,7 @@ def vector_envs(args: Args, num_envs: int):
 
 def final_observations(info: dict, ends: np.ndarray) -> dict[str, np.ndarray]:
     """Last observations of the episodes that ended: a dict of arrays (batched Simple Shapes env) or an
-    array of per-env dicts (gymnasium's SyncVectorEnv)."""
+    array of per-env dicts (gymnasium's vector envs, in this process or in one process each)."""
     fo = info["final_obs"]
     if isinstance(fo, dict):
         return {k: v[ends] for k, v in fo.items()}
