@@ -20,7 +20,7 @@ Reading map, top to bottom:
     Args, ENV_SPECS               the settings, and the shapes of each environment's inputs
     RawExtractor, Agent           the image + attribute CNN for raw inputs, the policy and value heads
     ppo_loss, gae, ppo_update     the clipped PPO loss, advantages, one minibatch update
-    main                          rollouts, GAE, update epochs, the log line and the saves
+    main, update                  rollouts, GAE, update epochs, the log line and the saves
     FrameStack ... run_episodes   4-frame stacks, the environments, evaluation episodes
     VisualVAE ... Observer        the frozen VAEs, GW or CLIP-like model of pretrain_vae_gw.py
     SCRIPT ... log_iteration      this script's part of the run; below the ==== fence, the shared block
@@ -150,6 +150,10 @@ class Args:
     """episodes for --eval-only and the final evaluation"""
     save_every: int = 1
     """rollouts between resumable checkpoints"""
+    save_minutes: float = 15.0
+    """wall-clock minutes a run may go without a resumable checkpoint: when the update about to start
+    would end later than that after the last save (judged by the last update's length), the rollout is
+    saved before it, and --resume runs that update first"""
     overwrite: bool = False
     """replace an earlier run of the same name (its agent checkpoint and runs/ folder); without it a run
     whose files exist stops at start"""
@@ -390,9 +394,12 @@ def main(args: Args) -> dict:
         torch.zeros((args.num_steps, args.num_envs), device=dev) for _ in range(4)
     )
     ep_ret, ep_succ = np.zeros(args.num_envs), np.zeros(args.num_envs)
-    stats = {}
-    stop = StopRequest(TAG)  # Ctrl-C: the rollout and its update finish, then the run saves and exits
-    while state.iteration < num_iterations:
+    stop = StopRequest(TAG)  # Ctrl-C: the rollout finishes, then the run saves (before its update) and exits
+    while state.iteration < num_iterations or run.pending:
+        if run.pending:  # --resume of a run saved between a rollout and its update: that update first
+            flat, run.pending = to_device(run.pending, dev), None
+            update(run, flat, stop, num_iterations * batch_size * repeat)
+            continue
         if args.stop_at_criterion and state.criterion_step is not None:
             break
         state.iteration += 1
@@ -423,7 +430,8 @@ def main(args: Args) -> dict:
             rewards[t] = r
             terms[t] = torch.as_tensor(term | trunc, dtype=torch.float32, device=dev)
 
-        # Advantages (GAE), then update_epochs passes of minibatch updates over the rollout.
+        # Advantages (GAE); the rollout is saved when the update would end too late after the last save
+        # (update_ends_late) or when Ctrl-C asks to stop; then update_epochs passes over it (update).
         with torch.no_grad():
             advantages = gae(rewards, values, agent.get_value(x), terms, args)
             returns = advantages + values
@@ -435,37 +443,67 @@ def main(args: Args) -> dict:
             "returns": returns.reshape(-1),
             "values": values.reshape(-1),
         }
-        for _ in range(args.update_epochs):
-            perm = torch.randperm(batch_size, device=dev)
-            for start in range(0, batch_size - args.minibatch_size + 1, args.minibatch_size):
-                idx = perm[start : start + args.minibatch_size]
-                mb = {
-                    k: ({kk: vv[idx] for kk, vv in v.items()} if k == "obs" else v[idx])
-                    for k, v in flat.items()
-                }
-                try:
-                    if state.flops_per_minibatch == 0:  # same shapes every minibatch: count the first one
-                        stats, state.flops_per_minibatch = count_flops(
-                            lambda mb=mb: ppo_update(agent, optimizer, mb, args, state.env_steps)
-                        )
-                    else:
-                        stats = ppo_update(agent, optimizer, mb, args, state.env_steps)
-                except FloatingPointError as err:
-                    raise FloatingPointError(f"{err}; {last_good(agent_path)}") from err
-                state.flops += state.flops_per_minibatch
-            if args.target_kl is not None and stats["approx_kl"] > args.target_kl:
-                break
-
-        log_iteration(run, stats, flat, num_iterations * batch_size * repeat)
-        if state.iteration % args.save_every == 0 and not stop.requested:
+        if stop.requested or update_ends_late(run):  # the rollout is kept, so the update can be redone
+            run.pending = flat
+            if stop.requested:
+                envs_.close()
+                stop.restore()
+                interrupted(run)
             save(run)
-        if stop.requested:
+            run.pending = None
+        update(run, flat, stop, num_iterations * batch_size * repeat)
+        if stop.requested:  # pressed during the update: it is done and saved
             envs_.close()
             stop.restore()
             interrupted(run)
     stop.restore()
     envs_.close()
     return finish(run)
+
+
+def update(run: Run, flat: dict, stop: StopRequest, total: int) -> None:
+    """update_epochs passes of minibatch updates over one rollout (``flat``), its log line and its save
+    (``total``: the run's env steps, for the log line)."""
+    args, agent, optimizer, state = run.args, run.agent, run.optimizer, run.state
+    t0, batch_size = time.time(), len(flat["returns"])
+    for _ in range(args.update_epochs):
+        perm = torch.randperm(batch_size, device=flat["returns"].device)
+        for start in range(0, batch_size - args.minibatch_size + 1, args.minibatch_size):
+            idx = perm[start : start + args.minibatch_size]
+            mb = {
+                k: ({kk: vv[idx] for kk, vv in v.items()} if k == "obs" else v[idx]) for k, v in flat.items()
+            }
+            try:
+                if state.flops_per_minibatch == 0:  # same shapes every minibatch: count the first one
+                    stats, state.flops_per_minibatch = count_flops(
+                        lambda mb=mb: ppo_update(agent, optimizer, mb, args, state.env_steps)
+                    )
+                else:
+                    stats = ppo_update(agent, optimizer, mb, args, state.env_steps)
+            except FloatingPointError as err:
+                raise FloatingPointError(f"{err}; {last_good(run.agent_path)}") from err
+            state.flops += state.flops_per_minibatch
+        if args.target_kl is not None and stats["approx_kl"] > args.target_kl:
+            break
+    state.update_seconds = time.time() - t0
+    log_iteration(run, stats, flat, total)
+    if state.iteration % args.save_every == 0 and not stop.requested:
+        save(run)
+
+
+def update_ends_late(run: Run) -> bool:
+    """Whether the update about to start, as long as the last one, would end more than --save-minutes
+    after the last save: then the rollout is saved before it. A run stopped without warning then loses at
+    most one rollout's acting or one update, not both."""
+    due = 60 * run.args.save_minutes
+    return time.time() - run.last_save + run.state.update_seconds > due
+
+
+def to_device(tree, dev):
+    """The tensors of a nested dict on ``dev``."""
+    if isinstance(tree, dict):
+        return {k: to_device(v, dev) for k, v in tree.items()}
+    return tree.to(dev)
 
 
 # Simulator frames per agent step. The paper counts RoboDesk "environment steps" in frames ("2,000
@@ -778,8 +816,8 @@ def check_gw_vae_pair(vae: dict, gw: dict, vae_path: Path, gw_path: Path, checkp
 # Settings that may differ between the parts of one run (how long it runs, how it reports, where its files
 # are); every other setting defines the run, and --resume refuses a change to any of them.
 MAY_CHANGE = set(
-    "total_steps stop_at_criterion eval_episodes save_every device torch_threads env_processes resume"
-    " overwrite checkpoint checkpoint_dir vae_checkpoint gw_checkpoint exp_name eval_only drop".split()
+    "total_steps stop_at_criterion eval_episodes save_every save_minutes device torch_threads env_processes"
+    " resume overwrite checkpoint checkpoint_dir vae_checkpoint gw_checkpoint exp_name eval_only drop".split()
 )
 
 
@@ -806,6 +844,7 @@ def checkpoint_entries(run: Run) -> dict:
         "agent": run.agent.state_dict(),
         "optimizer": run.optimizer.state_dict(),
         "reward_norm": run.reward_norm.state_dict(),
+        "pending": run.pending,  # a rollout saved before its update (update_ends_late), else None
     }
 
 
@@ -813,7 +852,7 @@ def checkpoint_entries(run: Run) -> dict:
 RANGES = {
     ">= 1": "num_steps update_epochs minibatch_size frame_stack hidden",
     ">= 0": "ent_coef vf_coef",
-    "> 0": "learning_rate clip_coef max_grad_norm",
+    "> 0": "learning_rate clip_coef max_grad_norm save_minutes",
     "[0, 1]": "gae_lambda",
 }
 
@@ -839,6 +878,7 @@ class LoopState:
     episodes: int = 0
     criterion_step: int | None = None
     recent: list = field(default_factory=list)  # the last --smoothing normalised training returns
+    update_seconds: float = 0.0  # wall time of the last update (update_ends_late)
 
 
 @dataclass
@@ -855,6 +895,7 @@ class Run:
     agent_path: Path
     pretrained: dict  # {"fingerprint": float, "paths": [...]} of the frozen weights
     ref: tuple | None  # Simple Shapes returns of the random and the greedy policy (normalisation)
+    pending: dict | None = None  # a rollout saved before its update, which --resume runs first
     t0: float = field(default_factory=time.time)
     last_save: float = field(default_factory=time.time)
     steps0: int = 0
@@ -879,6 +920,7 @@ def start_run(
     ensure_writable(runs_dir)
     optimizer = torch.optim.Adam(agent.parameters(), lr=args.learning_rate, eps=1e-5)
     state, reward_norm = LoopState(), RewardNormalizer(args.num_envs, args.gamma, args.norm_reward)
+    pending = None
     if args.resume:
         ck = load_agent_checkpoint(agent_path, args, frozen["fingerprint"])
         agent.load_state_dict(ck["agent"])
@@ -887,7 +929,9 @@ def start_run(
         reward_norm.load_state_dict(ck["reward_norm"])
         torch.set_rng_state(ck["torch_rng"])
         np.random.set_state(ck["np_rng"])
-        print(f"[{TAG}] resuming {agent_path} at env step {state.env_steps:,}")
+        pending = ck.get("pending")
+        first = "; first the update of the rollout saved before it" if pending else ""
+        print(f"[{TAG}] resuming {agent_path} at env step {state.env_steps:,}{first}")
     writer = SummaryWriter(str(runs_dir))
     if not args.resume:
         table = "\n".join(f"|{k}|{v}|" for k, v in vars(args).items())
@@ -895,7 +939,7 @@ def start_run(
     # each part of a run logs its length, which --resume may change (benchmarks/paper_figures.py reads it)
     writer.add_scalar("charts/total_steps", args.total_steps, state.env_steps)
     ref = reference_returns(args)
-    run = Run(args, observer, agent, optimizer, reward_norm, state, writer, agent_path, frozen, ref)
+    run = Run(args, observer, agent, optimizer, reward_norm, state, writer, agent_path, frozen, ref, pending)
     run.steps0 = state.env_steps
     n_params = sum(p.numel() for p in agent.parameters())
     task = "" if args.env == "simple_shapes" else f"_{args.task}"

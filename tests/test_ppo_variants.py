@@ -92,6 +92,50 @@ def test_resume_continues_the_saved_run(ss_runs):
     assert logged_totals(tmp, "ppo_gw_") == [(0, 256), (256, 512)]
 
 
+def test_a_rollout_saved_before_its_update_resumes_to_the_same_weights(tmp_path, monkeypatch):
+    """Ctrl-C while acting saves the rollout before its update, and --resume runs that update first: the
+    weights are those of a run never stopped. A --save-minutes shorter than an update saves every rollout
+    before its update as well, and changes nothing. Fails if the saved rollout, the random state saved
+    with it or the update on resume differ from the run that was not stopped."""
+    monkeypatch.chdir(tmp_path)  # runs/
+    small = dict(variant="raw", num_envs=2, num_steps=64, update_epochs=2, minibatch_size=64, eval_episodes=1)
+
+    def run(name: str, steps: int, **more) -> dict:
+        path = tmp_path / f"{name}.pt"
+        PPO.main(PPO.Args(total_steps=steps, checkpoint=str(path), exp_name=name, **small, **more))
+        return torch.load(path, weights_only=False)
+
+    class PressedAtOnce(PPO.StopRequest):  # as if Ctrl-C came during the first rollout
+        def __init__(self, tag):
+            super().__init__(tag)
+            self.requested = True
+
+    whole = run("whole", 128)
+    with monkeypatch.context() as m, pytest.raises(SystemExit) as stopped:
+        m.setattr(PPO, "StopRequest", PressedAtOnce)
+        run("stopped", 128)
+    assert stopped.value.code == 130
+    saved = torch.load(tmp_path / "stopped.pt", weights_only=False)
+    assert saved["state"]["env_steps"] == 128 and saved["pending"]["returns"].shape == (128,)
+    assert saved["state"]["flops"] == 0  # no update yet
+    resumed = run("stopped", 128, resume=True)
+    assert resumed["pending"] is None and resumed["state"]["flops"] == whole["state"]["flops"] > 0
+    assert all(torch.equal(resumed["agent"][k], v) for k, v in whole["agent"].items())
+
+    saves, real = [], PPO.atomic_save
+
+    def spy(obj: dict, path):
+        saves.append(obj["pending"] is not None)
+        real(obj, path)
+
+    with monkeypatch.context() as m:
+        m.setattr(PPO, "atomic_save", spy)
+        often = run("often", 256, save_minutes=1e-9)
+    assert saves == [True, False, True, False, False]  # before and after each update, then the final one
+    rare = run("rare", 256)
+    assert all(torch.equal(often["agent"][k], v) for k, v in rare["agent"].items())
+
+
 def test_eval_only_with_each_drop(ss_runs, pretrained):
     tmp, _ = ss_runs
     more = ["--checkpoint-dir", str(tmp / "ck"), *"--eval-only --drop vision --eval-episodes 3".split()]
