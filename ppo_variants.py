@@ -445,14 +445,12 @@ def main(args: Args) -> dict:
         }
         if stop.requested or update_ends_late(run):  # the rollout is kept, so the update can be redone
             run.pending = flat
-            if stop.requested:
-                envs_.close()
-                stop.restore()
-                interrupted(run)
-            save(run)
-            run.pending = None
-        update(run, flat, stop, num_iterations * batch_size * repeat)
-        if stop.requested:  # pressed during the update: it is done and saved
+            if not stop.requested:
+                save(run)
+                run.pending = None
+        if run.pending is None:
+            update(run, flat, stop, num_iterations * batch_size * repeat)
+        if stop.requested:  # saved below with the update done, or with the rollout pending
             envs_.close()
             stop.restore()
             interrupted(run)
