@@ -975,11 +975,13 @@ def log_iteration(run: Run, stats: dict, flat: dict, total: int) -> None:
         w.add_scalar(f"losses/{k}", v.item(), step)
     w.add_scalar("losses/explained_variance", explained, step)
     w.add_scalar("charts/learning_rate", run.optimizer.param_groups[0]["lr"], step)
-    w.add_scalar("charts/SPS", sps, step)
+    if step > run.steps0:  # not after the update of a rollout saved before it (--resume): no steps yet
+        w.add_scalar("charts/SPS", sps, step)
     w.add_scalar("charts/train_flops", s.flops, step)
     smooth = np.mean(s.recent) if s.recent else float("nan")
+    rate = f"{sps:.0f} steps/s" if step > run.steps0 else "the saved rollout's update"
     print(
-        f"[{TAG}] step {step:,}/{total:,} {sps:.0f} steps/s | value loss {stats['value_loss'].item():.3f} "
+        f"[{TAG}] step {step:,}/{total:,} {rate} | value loss {stats['value_loss'].item():.3f} "
         f"entropy {stats['entropy'].item():.3f} smoothed normalised return {smooth:.3f}",
         flush=True,
     )

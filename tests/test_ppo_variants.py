@@ -92,7 +92,7 @@ def test_resume_continues_the_saved_run(ss_runs):
     assert logged_totals(tmp, "ppo_gw_") == [(0, 256), (256, 512)]
 
 
-def test_a_rollout_saved_before_its_update_resumes_to_the_same_weights(tmp_path, monkeypatch):
+def test_a_rollout_saved_before_its_update_resumes_to_the_same_weights(tmp_path, monkeypatch, capsys):
     """Ctrl-C while acting saves the rollout before its update, and --resume runs that update first: the
     weights are those of a run never stopped. A --save-minutes shorter than an update saves every rollout
     before its update as well, and changes nothing. Fails if the saved rollout, the random state saved
@@ -118,7 +118,10 @@ def test_a_rollout_saved_before_its_update_resumes_to_the_same_weights(tmp_path,
     saved = torch.load(tmp_path / "stopped.pt", weights_only=False)
     assert saved["state"]["env_steps"] == 128 and saved["pending"]["returns"].shape == (128,)
     assert saved["state"]["flops"] == 0  # no update yet
+    capsys.readouterr()
     resumed = run("stopped", 128, resume=True)
+    log = capsys.readouterr().out
+    assert "the saved rollout's update |" in log and " steps/s |" not in log  # no rate: no new steps
     assert resumed["pending"] is None and resumed["state"]["flops"] == whole["state"]["flops"] > 0
     assert all(torch.equal(resumed["agent"][k], v) for k, v in whole["agent"].items())
 
