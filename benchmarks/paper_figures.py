@@ -270,12 +270,16 @@ def flops_table(runs: list[dict], setting: str, env: str = "simple_shapes") -> s
         lines.append(f"| {label} | {len(hit)} / {len(rows)} | {steps} | {flops} | {paper} |")
     mine = [r for r in runs if r["setting"] == setting]
     finished = {(r["model"], r["seed"]) for r in mine if r["status"] != "cut"}
-    cut = [
-        f"{r['model']} seed {r['seed']}"
-        + (" (then run in full)" if (r["model"], r["seed"]) in finished else "")
-        for r in mine
-        if r["status"] == "cut"
-    ]
+    cuts: dict[tuple[str, str], int] = {}  # each cut seed once, in the records' order, with its count
+    for r in mine:
+        if r["status"] == "cut":
+            cuts[r["model"], r["seed"]] = cuts.get((r["model"], r["seed"]), 0) + 1
+    cut = []
+    for (model, seed), n in cuts.items():
+        notes = ([{2: "twice"}.get(n, f"{n} times")] if n > 1 else []) + (
+            ["then run in full"] if (model, seed) in finished else []
+        )
+        cut.append(f"{model} seed {seed}" + (f" ({', '.join(notes)})" if notes else ""))
     if cut:
         lines += ["", "Cut short, not counted: " + ", ".join(cut) + "."]
     return "\n".join(lines) + "\n"

@@ -255,6 +255,20 @@ def test_the_smoothing_is_the_criterions(tmp_path):
     assert y[2:].tolist() == [0.0, 0.5, 1.0, 1.0]  # mean of the last 10; held after the run's end
 
 
+def test_a_seed_cut_more_than_once_is_listed_once_with_its_count():
+    def run(seed, status, step=""):
+        row = dict(model="Dreamer", setting="default", seed=str(seed), status=status, criterion_step=step)
+        return row | dict(rl_train_flops="1e14" if step else "")
+
+    runs = [run(2, "cut"), run(3, "cut"), run(2, "cut"), run(2, "reached", "50000"), run(4, "cut")] + [
+        run(4, "cut")
+    ] * 2
+    table = PF.flops_table(runs, "default", "robodesk")
+    cut = "Dreamer seed 2 (twice, then run in full), Dreamer seed 3, Dreamer seed 4 (3 times)."
+    assert "Cut short, not counted: " + cut in table
+    assert "| Dreamer | 1 / 1 | 50,000 |" in table
+
+
 def test_the_reproduction_script_runs_valid_commands_only(tmp_path):
     """Its dry run prints every command; each must parse with its script's own flags (tyro), and the dry
     run writes nothing."""
