@@ -260,9 +260,7 @@ def test_a_seed_cut_more_than_once_is_listed_once_with_its_count():
         row = dict(model="Dreamer", setting="default", seed=str(seed), status=status, criterion_step=step)
         return row | dict(rl_train_flops="1e14" if step else "")
 
-    runs = [run(2, "cut"), run(3, "cut"), run(2, "cut"), run(2, "reached", "50000"), run(4, "cut")] + [
-        run(4, "cut")
-    ] * 2
+    runs = [run(2, "cut"), run(3, "cut"), run(2, "cut"), run(2, "reached", "50000")] + [run(4, "cut")] * 3
     table = PF.flops_table(runs, "default", "robodesk")
     cut = "Dreamer seed 2 (twice, then run in full), Dreamer seed 3, Dreamer seed 4 (3 times)."
     assert "Cut short, not counted: " + cut in table
